@@ -1,0 +1,86 @@
+"""Small rotation helpers written elementwise (3x3 products as sums of columns).
+
+On XLA:CPU, elementwise 3-vector arithmetic fuses into one kernel, while tiny `dot`s do not;
+DESIGN §7 measured 2.4x faster Newton iterations this way.
+"""
+
+import jax.numpy as jnp
+
+
+def cross(a, b):
+    """$a \\times b$ for 3-vectors."""
+    return jnp.stack(
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    )
+
+
+def matvec(R, v):
+    """$R v$ for a 3x3 matrix."""
+    return R[:, 0] * v[0] + R[:, 1] * v[1] + R[:, 2] * v[2]
+
+
+def rmatvec(R, v):
+    """$R^T v$ for a 3x3 matrix."""
+    return R[0, :] * v[0] + R[1, :] * v[1] + R[2, :] * v[2]
+
+
+def matmul(A, B):
+    """$A B$ for 3x3 matrices."""
+    return jnp.stack([matvec(A, B[:, j]) for j in range(3)], axis=1)
+
+
+def transpose_matmul(A, B):
+    """$A^T B$ for 3x3 matrices."""
+    return jnp.stack([rmatvec(A, B[:, j]) for j in range(3)], axis=1)
+
+
+def hat(a):
+    """Skew matrix $\\hat a$ with $\\hat a b = a \\times b$."""
+    z = jnp.zeros_like(a[0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -a[2], a[1]]),
+            jnp.stack([a[2], z, -a[0]]),
+            jnp.stack([-a[1], a[0], z]),
+        ]
+    )
+
+
+def skew_vee(R):
+    """$\\frac12 (R - R^T)^\\vee$: for a rotation by angle $\\phi$ about $k$, $\\sin\\phi\\, k$."""
+    return 0.5 * jnp.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+
+
+def cayley(a):
+    """Rotation $R = (I - \\hat a/2)^{-1}(I + \\hat a/2)$, smooth for every $a$.
+
+    Used to parametrise rotation unknowns in multiple shooting; rotation angle is
+    $2\\arctan(|a|/2)$.
+    """
+    A = hat(a)
+    c = 4.0 / (4.0 + jnp.dot(a, a))
+    return jnp.eye(3, dtype=a.dtype) + c * (A + 0.5 * matmul(A, A))
+
+
+def cayley_inverse(R):
+    """Inverse of `cayley`: $a = 2 (R - R^T)^\\vee / (1 + \\mathrm{tr} R)$."""
+    return 4.0 * skew_vee(R) / (1.0 + jnp.trace(R))
+
+
+def rotation_vector(R):
+    """Rotation vector (axis times angle, rad) of a rotation matrix, angle in $[0, \\pi)$.
+
+    Differentiable everywhere except at angle $\\pi$ (uses the double-`where` trick at 0).
+    """
+    s = skew_vee(R)  # sin(phi) k
+    c = 0.5 * (jnp.trace(R) - 1.0)  # cos(phi)
+    sn = jnp.sqrt(jnp.dot(s, s) + 1e-300)
+    phi = jnp.arctan2(sn, c)
+    small = sn < 1e-8
+    safe_sn = jnp.where(small, 1.0, sn)
+    scale = jnp.where(small, 1.0 + phi**2 / 6.0, phi / safe_sn)
+    return scale * s

@@ -1,0 +1,334 @@
+"""Scenes: the PyTree that describes a robot, its effects, loads and solver settings, and its TOML form.
+
+Structure (effect switches, node counts, integrator, number of steps) is static; every number
+you may differentiate, fit or `vmap` over (lengths, moduli, density, damping, loads, dt, alpha)
+is a float64 leaf. Keys follow DESIGN §3; unknown keys are rejected with the key and file named.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from . import bdf_alpha
+from .newton import NewtonSettings
+from .rod import DiagonalDamping, Effects, Rod, TauDamping
+from .shooting import auto_segments
+from .spatial import INTEGRATORS
+
+
+class SceneError(ValueError):
+    """A scene file or value that pcrjax cannot use; the message names the cause."""
+
+
+class Base(eqx.Module):
+    """Clamp of the rod: position (m) and rotation (3x3, columns = local x, y, z; z is the tangent)."""
+
+    position: jnp.ndarray
+    rotation: jnp.ndarray
+
+
+class TipLoad(eqx.Module):
+    """Force (N) and moment (N m) on the free tip, held while t <= release_time (s)."""
+
+    force: jnp.ndarray
+    moment: jnp.ndarray
+    release_time: jnp.ndarray
+
+
+class Solver(eqx.Module):
+    """Discretisation and Newton settings. ``dt`` (s) and ``alpha`` are differentiable leaves."""
+
+    dt: jnp.ndarray
+    alpha: jnp.ndarray
+    nodes: int = eqx.field(static=True)
+    integrator: str = eqx.field(static=True)
+    steps: int = eqx.field(static=True)
+    segments: int = eqx.field(static=True)
+    unroll: int = eqx.field(static=True)
+    newton: NewtonSettings = NewtonSettings()
+
+    @property
+    def duration(self):
+        return self.steps * self.dt
+
+
+class Scene(eqx.Module):
+    rod: Rod
+    base: Base
+    tip: TipLoad
+    gravity: jnp.ndarray
+    effects: Effects
+    solver: Solver
+    name: str = eqx.field(static=True, default="scene")
+    robot: str = eqx.field(static=True, default="rod")
+
+
+def _f(x):
+    return jnp.asarray(x, dtype=jnp.float64)
+
+
+# ----------------------------------------------------------------------------------------------
+# TOML schema
+
+_SCHEMA = {
+    "": {"name", "robot", "solver", "effects", "environment", "rod", "rods", "base", "tip"},
+    "solver": {"nodes", "integrator", "dt", "alpha", "duration", "tol", "max_iter", "segments", "unroll"},
+    "effects": {"inertia", "gravity", "damping", "drag", "shear_extension", "planar"},
+    "environment": {"gravity"},
+    "rod": {"length", "radius", "youngs_modulus", "shear_modulus", "density", "tau", "bse", "bbt", "drag_coefficients", "precurvature"},
+    "base": {"position", "direction", "normal"},
+    "tip": {"force", "moment", "release_time"},
+}
+_REQUIRED_ROD = ("length", "radius", "youngs_modulus", "shear_modulus", "density")
+ROBOTS = ("rod", "stewart_gough", "triskele")
+
+
+class _Reader:
+    def __init__(self, data: dict, source: str):
+        self.data = data
+        self.source = source
+
+    def fail(self, where: str, msg: str):
+        raise SceneError(f"{self.source}: {where}: {msg}")
+
+    def table(self, name: str) -> dict:
+        t = self.data.get(name, {})
+        if not isinstance(t, dict):
+            self.fail(f"[{name}]", "must be a table")
+        allowed = _SCHEMA[name]
+        for key in t:
+            if key not in allowed:
+                self.fail(f"[{name}]", f"unknown key '{key}' (allowed: {', '.join(sorted(allowed))})")
+        return t
+
+    def number(self, table: dict, tname: str, key: str, default=None, *, positive=False, nonneg=False, required=False):
+        where = f"[{tname}] {key}"
+        if key not in table:
+            if required:
+                self.fail(where, "missing required key")
+            return default
+        v = table[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            self.fail(where, f"must be a number, got {v!r}")
+        v = float(v)
+        if not math.isfinite(v):
+            self.fail(where, f"must be finite, got {v}")
+        if positive and v <= 0:
+            self.fail(where, f"must be > 0, got {v}")
+        if nonneg and v < 0:
+            self.fail(where, f"must be >= 0, got {v}")
+        return v
+
+    def vector(self, table: dict, tname: str, key: str, default=None, *, nonneg=False):
+        where = f"[{tname}] {key}"
+        if key not in table:
+            return default
+        v = table[key]
+        if not isinstance(v, list) or len(v) != 3 or any(isinstance(a, bool) or not isinstance(a, (int, float)) for a in v):
+            self.fail(where, f"must be a list of 3 numbers, got {v!r}")
+        a = np.asarray(v, dtype=float)
+        if not np.all(np.isfinite(a)):
+            self.fail(where, f"must be finite, got {v}")
+        if nonneg and np.any(a < 0):
+            self.fail(where, f"must be >= 0, got {v}")
+        return a
+
+    def flag(self, table: dict, tname: str, key: str, default: bool) -> bool:
+        if key not in table:
+            return default
+        v = table[key]
+        if not isinstance(v, bool):
+            self.fail(f"[{tname}] {key}", f"must be true or false, got {v!r}")
+        return v
+
+
+def _frame(r: _Reader, direction, normal) -> np.ndarray:
+    nd = np.linalg.norm(direction)
+    if nd == 0:
+        r.fail("[base] direction", "must not be zero")
+    z = direction / nd
+    x = normal - np.dot(normal, z) * z
+    nx = np.linalg.norm(x)
+    if nx < 1e-9 * max(1.0, np.linalg.norm(normal)):
+        r.fail("[base] normal", "must not be parallel to direction (or zero)")
+    x = x / nx
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
+    """Build and validate a scene from parsed TOML (raises `SceneError` naming the cause)."""
+    r = _Reader(data, source)
+    for key in data:
+        if key not in _SCHEMA[""]:
+            r.fail("top level", f"unknown key '{key}' (allowed: {', '.join(sorted(_SCHEMA['']))})")
+    robot = data.get("robot", "rod")
+    if robot not in ROBOTS:
+        r.fail("robot", f"must be one of {', '.join(ROBOTS)}, got {robot!r}")
+    if robot != "rod":
+        r.fail("robot", f"'{robot}' scenes are not available in this version (only 'rod')")
+    name = data.get("name", Path(source).stem)
+    if not isinstance(name, str):
+        r.fail("name", "must be a string")
+    if "rods" in data:
+        r.fail("[[rods]]", "per-rod overrides apply to parallel robots; a 'rod' scene has one [rod]")
+
+    sv = r.table("solver")
+    ef = r.table("effects")
+    env = r.table("environment")
+    rd = r.table("rod")
+    bs = r.table("base")
+    tp = r.table("tip")
+    if "rod" not in data:
+        r.fail("[rod]", "missing required table")
+
+    if "planar" in ef:
+        r.fail("[effects] planar", "applies to parallel robots only")
+    effects = Effects(
+        inertia=r.flag(ef, "effects", "inertia", True),
+        gravity=r.flag(ef, "effects", "gravity", False),
+        damping=r.flag(ef, "effects", "damping", False),
+        drag=r.flag(ef, "effects", "drag", False),
+        shear_extension=r.flag(ef, "effects", "shear_extension", True),
+    )
+
+    vals = {k: r.number(rd, "rod", k, required=True, positive=True) for k in _REQUIRED_ROD}
+    tau = r.number(rd, "rod", "tau", None, nonneg=True)
+    bse = r.vector(rd, "rod", "bse", nonneg=True)
+    bbt = r.vector(rd, "rod", "bbt", nonneg=True)
+    if (bse is None) != (bbt is None):
+        r.fail("[rod] bse/bbt", "give both bse and bbt (or tau)")
+    if tau is not None and bse is not None:
+        r.fail("[rod] tau", "give either tau or bse/bbt, not both")
+    damping = None
+    if bse is not None:
+        damping = DiagonalDamping(bse=_f(bse), bbt=_f(bbt))
+    elif tau is not None:
+        damping = TauDamping(tau=_f(tau))
+    if effects.damping and damping is None:
+        damping = TauDamping(tau=_f(0.0))
+    drag = r.vector(rd, "rod", "drag_coefficients", np.zeros(3), nonneg=True)
+    ustar = r.vector(rd, "rod", "precurvature")
+    rod = Rod(
+        length=_f(vals["length"]),
+        radius=_f(vals["radius"]),
+        youngs_modulus=_f(vals["youngs_modulus"]),
+        shear_modulus=_f(vals["shear_modulus"]),
+        density=_f(vals["density"]),
+        damping=damping if effects.damping else None,
+        drag=_f(drag) if effects.drag else None,
+        precurvature=None if ustar is None else _f(ustar),
+    )
+
+    R0 = _frame(r, r.vector(bs, "base", "direction", np.array([1.0, 0, 0])), r.vector(bs, "base", "normal", np.array([0, 0, 1.0])))
+    base = Base(position=_f(r.vector(bs, "base", "position", np.zeros(3))), rotation=_f(R0))
+    tip = TipLoad(
+        force=_f(r.vector(tp, "tip", "force", np.zeros(3))),
+        moment=_f(r.vector(tp, "tip", "moment", np.zeros(3))),
+        release_time=_f(r.number(tp, "tip", "release_time", 0.0)),
+    )
+    gravity = _f(r.vector(env, "environment", "gravity", np.array([0.0, 0.0, -9.81])))
+
+    nodes = sv.get("nodes", 50)
+    if isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1:
+        r.fail("[solver] nodes", f"must be a positive integer, got {nodes!r}")
+    integrator = sv.get("integrator", "rk4")
+    if integrator not in INTEGRATORS:
+        r.fail("[solver] integrator", f"must be one of {', '.join(INTEGRATORS)}, got {integrator!r}")
+    dt = r.number(sv, "solver", "dt", 5e-3, positive=True)
+    alpha = r.number(sv, "solver", "alpha", -0.2)
+    if not -0.5 <= alpha <= 0.0:
+        r.fail("[solver] alpha", f"must lie in [-0.5, 0] (-0.5 trapezoidal, 0 BDF2), got {alpha}")
+    duration = r.number(sv, "solver", "duration", 1.0, nonneg=True)
+    tol = r.number(sv, "solver", "tol", 1e-10, positive=True)
+    max_iter = sv.get("max_iter", 50)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        r.fail("[solver] max_iter", f"must be a positive integer, got {max_iter!r}")
+    segments = sv.get("segments", "auto")
+    if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):
+        r.fail("[solver] segments", f"must be \"auto\" or an integer in [1, nodes], got {segments!r}")
+    unroll = sv.get("unroll", None)
+    if unroll is not None and (isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 1):
+        r.fail("[solver] unroll", f"must be a positive integer, got {unroll!r}")
+
+    solver = make_solver(rod, nodes, integrator, dt, alpha, duration, tol, max_iter, segments, unroll)
+    return Scene(rod=rod, base=base, tip=tip, gravity=gravity, effects=effects, solver=solver, name=name, robot=robot)
+
+
+def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max_iter=50, segments="auto", unroll=None) -> Solver:
+    """Solver settings; ``segments="auto"`` picks the multiple-shooting split from dt and alpha."""
+    if segments == "auto":
+        c0 = float(bdf_alpha.coefficients(dt, alpha).c0)
+        segments = auto_segments(nodes, float(rod.length), float(rod.radius), float(rod.youngs_modulus), float(rod.shear_modulus), float(rod.density), c0)
+    if unroll is None:
+        unroll = default_unroll(nodes)
+    return Solver(
+        dt=_f(dt),
+        alpha=_f(alpha),
+        nodes=int(nodes),
+        integrator=integrator,
+        steps=int(round(duration / dt)),
+        segments=int(segments),
+        unroll=int(unroll),
+        newton=NewtonSettings(tol=float(tol), max_iter=int(max_iter)),
+    )
+
+
+def default_unroll(nodes: int) -> int:
+    """Scan unroll factor: small rods are fully unrolled (less loop overhead on CPU)."""
+    return nodes if nodes <= 10 else 5 if nodes % 5 == 0 else 4 if nodes % 4 == 0 else 1
+
+
+def with_solver(scene: Scene, **changes) -> Scene:
+    """A copy of ``scene`` with solver settings changed (nodes, integrator, dt, alpha, duration,
+    tol, max_iter, segments, unroll); segments are re-chosen unless given."""
+    s = scene.solver
+    cur = dict(
+        nodes=s.nodes,
+        integrator=s.integrator,
+        dt=float(s.dt),
+        alpha=float(s.alpha),
+        duration=float(s.steps * s.dt),
+        tol=s.newton.tol,
+        max_iter=s.newton.max_iter,
+        segments="auto",
+        unroll=None if "nodes" in changes else s.unroll,
+    )
+    unknown = set(changes) - set(cur)
+    if unknown:
+        raise SceneError(f"with_solver: unknown setting(s) {', '.join(sorted(unknown))}")
+    cur.update(changes)
+    if not -0.5 <= cur["alpha"] <= 0.0:
+        raise SceneError(f"alpha must lie in [-0.5, 0], got {cur['alpha']}")
+    if cur["dt"] <= 0:
+        raise SceneError(f"dt must be > 0, got {cur['dt']}")
+    return dataclasses.replace(scene, solver=make_solver(scene.rod, **cur))
+
+
+def load_scene(path) -> Scene:
+    """Read and validate a scene TOML file (a path, or the name of a shipped scene)."""
+    p = Path(path)
+    if not p.exists() and not p.suffix:
+        shipped = resources.files("pcrjax") / "scenes" / f"{path}.toml"
+        if shipped.is_file():
+            p = Path(str(shipped))
+    if not p.exists():
+        raise SceneError(f"{path}: no such file (shipped scenes: {', '.join(shipped_scenes())})")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{p}: malformed TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{p}: not a text file") from None
+    return scene_from_dict(data, str(p))
+
+
+def shipped_scenes() -> list[str]:
+    return sorted(f.name[:-5] for f in (resources.files("pcrjax") / "scenes").iterdir() if f.name.endswith(".toml"))

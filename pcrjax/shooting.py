@@ -1,0 +1,160 @@
+"""Shooting for one rod: unknown layout, multiple-shooting segments and continuity residuals.
+
+Single shooting from the clamp amplifies errors like $e^{\\lambda L}$, with
+$\\lambda = \\max((\\rho A c_0^2/EI)^{1/4}, c_0\\sqrt{\\rho/G})$ in dynamics: at
+$\\delta t = 10^{-5}$ s the thesis cantilever has $\\lambda L \\approx 107$ ($10^{46}$), which no
+float64 Newton can solve, and which is why the thesis failed at $\\delta t \\le 1$ ms. pcrjax
+therefore splits the rod into segments of $\\lambda \\ell \\lesssim 10$ (`auto_segments`), each
+with its own start state as unknowns, and adds continuity residuals; at the usual step sizes
+one segment (plain single shooting, 6 unknowns) is enough and nothing is added.
+
+Unknowns are scaled: positions by L, forces by $F_c = EI/L^2$, moments by $F_c L$, linear
+velocities by $L c_0$ and angular velocities by $c_0$ (a change of one step's displacement);
+rotations of segment starts are Cayley parameters relative to a reference rotation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .rod import DYNAMIC_DIM, STATIC_DIM
+from .rotations import cayley, cayley_inverse, matmul, skew_vee, transpose_matmul
+from .spatial import integrate
+
+SEGMENT_CONDITIONING = 10.0  # target lambda * segment length
+
+
+class Scales(eqx.Module):
+    length: jnp.ndarray
+    force: jnp.ndarray
+    velocity: jnp.ndarray
+    angular: jnp.ndarray
+
+    @property
+    def moment(self):
+        return self.force * self.length
+
+
+def make_scales(rod, c0=None) -> Scales:
+    L = rod.length
+    c0 = jnp.ones_like(L) if c0 is None else c0
+    return Scales(length=L, force=rod.bending_stiffness / L**2, velocity=L * c0, angular=c0)
+
+
+def auto_segments(nodes, length, radius, E, G, rho, c0) -> int:
+    """Number of shooting segments for a dynamic step (Python numbers, decided before tracing)."""
+    A = math.pi * radius**2
+    EI = E * 0.25 * math.pi * radius**4
+    lam = max((rho * A * c0**2 / EI) ** 0.25, c0 * math.sqrt(rho / min(E, G)))
+    return int(min(nodes, max(1, math.ceil(lam * length / SEGMENT_CONDITIONING))))
+
+
+class Layout(eqx.Module):
+    """Static description of the unknowns of one rod: segment start nodes and sizes."""
+
+    nodes: int = eqx.field(static=True)
+    segments: int = eqx.field(static=True)
+    inertia: bool = eqx.field(static=True)
+
+    @property
+    def starts(self) -> tuple[int, ...]:
+        """Start nodes of segments 1..M-1 (segment 0 starts at the clamp)."""
+        return tuple(int(round(k * self.nodes / self.segments)) for k in range(1, self.segments))
+
+    @property
+    def state_dim(self) -> int:
+        return DYNAMIC_DIM if self.inertia else STATIC_DIM
+
+    @property
+    def segment_dim(self) -> int:
+        """Unknowns of a segment start: p, rotation, n, m (and q, w in dynamics)."""
+        return 18 if self.inertia else 12
+
+    @property
+    def size(self) -> int:
+        return 6 + (self.segments - 1) * self.segment_dim
+
+    def colouring(self, extra_rows: int = 6):
+        """Column colours and sparsity mask for the residual [junctions..., tip rows]."""
+        d = self.segment_dim
+        colours = [6 + j for j in range(6)]  # segment 0: n, m share colours with n, m below
+        for k in range(1, self.segments):
+            colours += [(k % 2) * d + j for j in range(d)]
+        rows = (self.segments - 1) * d + extra_rows
+        mask = np.zeros((rows, self.size), dtype=bool)
+        col0 = [0] + [6 + (k - 1) * d for k in range(1, self.segments)] + [self.size]
+        for k in range(self.segments):
+            cols = slice(col0[k], col0[k + 1])
+            if k > 0:
+                mask[(k - 1) * d : k * d, cols] = True  # junction k-1 sees segment k directly
+            mask[k * d : (k + 1) * d if k < self.segments - 1 else rows, cols] = True
+        return np.asarray(colours), mask
+
+
+def restart_states(layout: Layout, x, R_ref, sc: Scales):
+    """Unscaled start states (M-1, dim) of segments 1.. from the unknown vector."""
+    d = layout.segment_dim
+    xs = x[6:].reshape(layout.segments - 1, d)
+
+    def one(xk, Rr):
+        parts = [xk[0:3] * sc.length, matmul(Rr, cayley(xk[3:6])).reshape(9), xk[6:9] * sc.force, xk[9:12] * sc.moment]
+        if layout.inertia:
+            parts += [xk[12:15] * sc.velocity, xk[15:18] * sc.angular]
+        return jnp.concatenate(parts)
+
+    return jax.vmap(one)(xs, R_ref)
+
+
+def junction_residuals(layout: Layout, arrivals, restarts, sc: Scales):
+    """Scaled mismatch between the state arriving at each segment start and its unknown start."""
+
+    def one(a, s):
+        Ra, Rs = a[3:12].reshape(3, 3), s[3:12].reshape(3, 3)
+        parts = [
+            (a[0:3] - s[0:3]) / sc.length,
+            skew_vee(transpose_matmul(Rs, Ra)),
+            (a[12:15] - s[12:15]) / sc.force,
+            (a[15:18] - s[15:18]) / sc.moment,
+        ]
+        if layout.inertia:
+            parts += [(a[18:21] - s[18:21]) / sc.velocity, (a[21:24] - s[21:24]) / sc.angular]
+        return jnp.concatenate(parts)
+
+    return jax.vmap(one)(arrivals, restarts).reshape(-1)
+
+
+def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1):
+    """Integrate the rod for unknowns ``x``; returns (nodes, junction residuals).
+
+    ``base_state`` is the state at s = 0 with zero wrench; x[0:6] sets the scaled base wrench.
+    """
+    y0 = base_state.at[12:15].set(x[0:3] * sc.force).at[15:18].set(x[3:6] * sc.moment)
+    if layout.segments == 1:
+        nodes, _ = integrate(y0, history, k, effects, ds, integrator, unroll=unroll)
+        return nodes, jnp.zeros((0,), x.dtype)
+    restarts = restart_states(layout, x, R_ref, sc)
+    nodes, arrivals = integrate(y0, history, k, effects, ds, integrator, layout.starts, restarts, unroll=unroll)
+    return nodes, junction_residuals(layout, arrivals, restarts, sc)
+
+
+def unknowns_from_nodes(layout: Layout, nodes, R_ref, sc: Scales):
+    """Scaled unknown vector that reproduces ``nodes`` (e.g. a previous step's solution)."""
+    parts = [nodes[0, 12:15] / sc.force, nodes[0, 15:18] / sc.moment]
+    if layout.segments > 1:
+        idx = np.asarray(layout.starts)
+        S = nodes[idx]
+
+        def one(s, Rr):
+            Rs = s[3:12].reshape(3, 3)
+            q = [s[0:3] / sc.length, cayley_inverse(transpose_matmul(Rr, Rs)), s[12:15] / sc.force, s[15:18] / sc.moment]
+            if layout.inertia:
+                q += [s[18:21] / sc.velocity, s[21:24] / sc.angular]
+            return jnp.concatenate(q)
+
+        parts.append(jax.vmap(one)(S, R_ref).reshape(-1))
+    return jnp.concatenate(parts)

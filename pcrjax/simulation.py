@@ -1,0 +1,254 @@
+"""Public solves: `solve_static`, `rollout` (pure, differentiable) and `simulate` (checked, with progress).
+
+`rollout` is one `lax.scan` over time: `jax.grad`, `jax.jacfwd`, `jax.vmap` and `jax.jit` work
+through it. `simulate` runs the same step in jitted chunks so that long runs show progress and
+a failure stops at the chunk where it happened; it raises `ConvergenceError` naming the first
+step whose Newton solve did not converge (never returns such a result silently).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import cantilever
+from .rotations import rotation_vector
+from .scene import Scene, SceneError
+
+
+class ConvergenceError(RuntimeError):
+    """A Newton solve that did not reach the tolerance; ``time`` (s) and ``residual`` say where."""
+
+    def __init__(self, message, time=None, residual=None):
+        super().__init__(message)
+        self.time = time
+        self.residual = residual
+
+
+class StaticResult(eqx.Module):
+    """Static equilibrium: tip ``position`` (3,) m, ``rotation_vector`` (3,) rad, ``base_wrenches``
+    (1, 2, 3) [n(0), m(0)] in N and N m, node ``positions`` (N+1, 3), and the solve's stats."""
+
+    position: jnp.ndarray
+    rotation_vector: jnp.ndarray
+    rotation: jnp.ndarray
+    base_wrenches: jnp.ndarray
+    positions: jnp.ndarray
+    residual_norm: jnp.ndarray
+    newton_iterations: jnp.ndarray
+    tol: float = eqx.field(static=True)
+
+    @property
+    def converged(self):
+        return self.residual_norm <= self.tol
+
+
+class Trajectory(eqx.Module):
+    """Time series: ``t`` (T,), tip ``position`` (T, 3), ``rotation_vector`` (T, 3), node
+    ``positions`` (T, N+1, 3); per step (T-1,): Newton ``iterations``, final scaled ``residual``,
+    ``jacobians`` evaluated. Row 0 is the initial static equilibrium."""
+
+    t: jnp.ndarray
+    position: jnp.ndarray
+    rotation_vector: jnp.ndarray
+    positions: jnp.ndarray
+    iterations: jnp.ndarray
+    residual: jnp.ndarray
+    jacobians: jnp.ndarray
+    tol: float = eqx.field(static=True)
+
+    @property
+    def converged(self):
+        return self.residual <= self.tol
+
+
+def _is_traced(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _check_rod(scene: Scene):
+    if scene.robot != "rod":
+        raise SceneError(f"robot '{scene.robot}' is not available in this version")
+
+
+def static_result(scene: Scene, sol: cantilever.StaticSolution) -> StaticResult:
+    nodes = sol.nodes
+    R = nodes[-1, 3:12].reshape(3, 3)
+    return StaticResult(
+        position=nodes[-1, 0:3],
+        rotation_vector=rotation_vector(R),
+        rotation=R,
+        base_wrenches=jnp.stack([nodes[0, 12:15], nodes[0, 15:18]])[None],
+        positions=nodes[:, 0:3],
+        residual_norm=sol.stats.residual,
+        newton_iterations=sol.stats.iterations,
+        tol=scene.solver.newton.tol,
+    )
+
+
+@eqx.filter_jit
+def _static(scene: Scene):
+    return static_result(scene, cantilever.solve_static(scene))
+
+
+def solve_static(scene: Scene, *, throw: bool = True) -> StaticResult:
+    """Static equilibrium under the initial loads (t = 0). Raises `ConvergenceError` if the solve
+    fails (when called outside a trace and ``throw``)."""
+    _check_rod(scene)
+    res = _static(scene)
+    if throw and not _is_traced(res.residual_norm) and not bool(res.converged):
+        raise ConvergenceError(
+            f"static solve did not converge: scaled residual {float(res.residual_norm):.3e} > tol {scene.solver.newton.tol:.1e}",
+            0.0,
+            float(res.residual_norm),
+        )
+    return res
+
+
+def _initial(scene: Scene):
+    static = cantilever.solve_static(scene, t=jnp.where(scene.tip.release_time >= 0, 0.0, jnp.inf))
+    return static, cantilever.initial_step_state(scene, static)
+
+
+def _scan_steps(scene: Scene, state, i0, count: int):
+    def body(st, i):
+        t = (i0 + i + 1) * scene.solver.dt
+        st, out = cantilever.step(scene, st, t)
+        return st, (out.tip_position, rotation_vector(out.tip_rotation), out.positions, out.stats)
+
+    return jax.lax.scan(body, state, jnp.arange(count))
+
+
+def _assemble(scene, static, outs, steps):
+    pos, rv, shapes, stats = outs
+    s0 = static.nodes
+    R0 = s0[-1, 3:12].reshape(3, 3)
+    t = jnp.arange(steps + 1) * scene.solver.dt
+    return Trajectory(
+        t=t,
+        position=jnp.concatenate([s0[-1:, 0:3], pos[:steps]]),
+        rotation_vector=jnp.concatenate([rotation_vector(R0)[None], rv[:steps]]),
+        positions=jnp.concatenate([s0[None, :, 0:3], shapes[:steps]]),
+        iterations=stats.iterations[:steps],
+        residual=stats.residual[:steps],
+        jacobians=stats.jacobians[:steps],
+        tol=scene.solver.newton.tol,
+    )
+
+
+def rollout(scene: Scene) -> Trajectory:
+    """Simulate ``scene.solver.steps`` steps from rest at the static equilibrium; pure function.
+
+    No convergence check is raised here (it cannot be, under `jit`/`grad`): inspect
+    ``.converged`` or use `simulate`.
+    """
+    _check_rod(scene)
+    if not scene.effects.inertia:
+        raise SceneError("effects.inertia is false: the scene is static; use solve_static")
+    static, state = _initial(scene)
+    _, outs = _scan_steps(scene, state, 0, scene.solver.steps)
+    return _assemble(scene, static, outs, scene.solver.steps)
+
+
+@eqx.filter_jit
+def _start(scene):
+    return _initial(scene)
+
+
+@eqx.filter_jit
+def _advance(scene, state, i0, count: int):
+    return _scan_steps(scene, state, i0, count)
+
+
+def _raise_first_failure(scene, residual, tol, offset=0):
+    bad = np.flatnonzero(~(residual <= tol))
+    if bad.size:
+        i = int(bad[0])
+        t = (offset + i + 1) * float(scene.solver.dt)
+        raise ConvergenceError(
+            f"Newton did not converge at t = {t:.6g} s (step {offset + i + 1}): scaled residual {float(residual[i]):.3e} > tol {tol:.1e}",
+            t,
+            float(residual[i]),
+        )
+
+
+def simulate(
+    scene: Scene,
+    *,
+    throw: bool = True,
+    progress: bool | Callable = False,
+    chunk: int = 100,
+    timings: dict | None = None,
+) -> Trajectory:
+    """Forward dynamics from rest at the static equilibrium under the initial load.
+
+    **Arguments:**
+    - ``throw``: raise `ConvergenceError` at the first non-converged step (outside traces; under
+      a trace this is `rollout`).
+    - ``progress``: True for a progress bar, or a callable ``f(done_steps, total_steps)``.
+    - ``chunk``: steps per jitted call (the compiled chunk is reused; the last chunk is padded).
+    - ``timings``: if a dict, receives ``compile_s`` and ``run_s`` (wall time after compilation).
+
+    When a step fails, the steps up to it are kept in the exception's ``partial`` attribute.
+    """
+    _check_rod(scene)
+    if _is_traced(scene.solver.dt) or _is_traced(scene.rod.length):
+        return rollout(scene)
+    if not scene.effects.inertia:
+        raise SceneError("effects.inertia is false: the scene is static; use `pcrjax static`")
+    steps = scene.solver.steps
+    chunk = max(1, min(chunk, steps))
+    n_chunks = -(-steps // chunk)
+    t_c0 = time.perf_counter()
+    static, state = _start(scene)
+    jax.block_until_ready(state)
+    static_res = np.asarray(static.stats.residual)
+    if not static_res <= scene.solver.newton.tol:
+        raise ConvergenceError(f"initial static equilibrium did not converge: scaled residual {float(static_res):.3e}", 0.0, float(static_res))
+    # Compile the chunk once (lower+compile), so run time excludes compilation.
+    compiled = _advance.lower(scene, state, jnp.asarray(0), chunk).compile()
+    compile_s = time.perf_counter() - t_c0
+    bar = None
+    if progress is True:
+        try:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=steps, unit="step", desc=scene.name, leave=False)
+        except ImportError:  # pragma: no cover
+            bar = None
+    outs_all = []
+    t_r0 = time.perf_counter()
+    failure = None
+    for c in range(n_chunks):
+        state, outs = compiled(scene, state, jnp.asarray(c * chunk), chunk)
+        res = np.asarray(outs[3].residual)
+        outs_all.append(outs)
+        done = min((c + 1) * chunk, steps)
+        if bar is not None:
+            bar.update(done - c * chunk)
+        elif callable(progress):
+            progress(done, steps)
+        valid = res[: done - c * chunk]
+        if throw and not np.all(valid <= scene.solver.newton.tol):
+            failure = c
+            break
+    run_s = time.perf_counter() - t_r0
+    if bar is not None:
+        bar.close()
+    outs = jax.tree.map(lambda *a: jnp.concatenate(a), *outs_all)
+    n_done = min(len(outs_all) * chunk, steps)
+    traj = _assemble(scene, static, outs, n_done)
+    if timings is not None:
+        timings.update(compile_s=compile_s, run_s=run_s, steps=n_done)
+    if failure is not None:
+        try:
+            _raise_first_failure(scene, np.asarray(traj.residual), scene.solver.newton.tol)
+        except ConvergenceError as e:
+            e.partial = traj
+            raise
+    return traj
