@@ -71,16 +71,30 @@ def cayley_inverse(R):
     return 4.0 * skew_vee(R) / (1.0 + jnp.trace(R))
 
 
-def rotation_vector(R):
-    """Rotation vector (axis times angle, rad) of a rotation matrix, angle in $[0, \\pi)$.
+def quaternion(R):
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix (Shepperd's method:
+    the branch with the largest pivot, so every rotation, including angle pi, is handled)."""
+    t = jnp.trace(R)
+    cands = jnp.stack(
+        [
+            jnp.stack([1.0 + t, R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]),
+            jnp.stack([R[2, 1] - R[1, 2], 1.0 + 2 * R[0, 0] - t, R[0, 1] + R[1, 0], R[0, 2] + R[2, 0]]),
+            jnp.stack([R[0, 2] - R[2, 0], R[0, 1] + R[1, 0], 1.0 + 2 * R[1, 1] - t, R[1, 2] + R[2, 1]]),
+            jnp.stack([R[1, 0] - R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 1.0 + 2 * R[2, 2] - t]),
+        ]
+    )
+    pivots = jnp.stack([t, R[0, 0], R[1, 1], R[2, 2]])
+    q = cands[jnp.argmax(pivots)]
+    q = q / jnp.linalg.norm(q)
+    return jnp.where(q[0] < 0, -q, q)
 
-    Differentiable everywhere except at angle $\\pi$ (uses the double-`where` trick at 0).
-    """
-    s = skew_vee(R)  # sin(phi) k
-    c = 0.5 * (jnp.trace(R) - 1.0)  # cos(phi)
-    sn = jnp.sqrt(jnp.dot(s, s) + 1e-300)
-    phi = jnp.arctan2(sn, c)
+
+def rotation_vector(R):
+    """Rotation vector (axis times angle, rad) of a rotation matrix, angle in $[0, \\pi]$."""
+    q = quaternion(R)
+    sn = jnp.sqrt(jnp.dot(q[1:], q[1:]) + 1e-300)
     small = sn < 1e-8
     safe_sn = jnp.where(small, 1.0, sn)
-    scale = jnp.where(small, 1.0 + phi**2 / 6.0, phi / safe_sn)
-    return scale * s
+    angle = 2.0 * jnp.arctan2(sn, q[0])
+    scale = jnp.where(small, 2.0 / q[0], angle / safe_sn)  # 2 atan2(s, w)/s -> 2/w as s -> 0
+    return scale * q[1:]

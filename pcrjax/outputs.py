@@ -1,0 +1,119 @@
+"""Files a run writes: trajectory.csv, summary.json and PNG plots (DESIGN §3)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+TRAJECTORY_HEADER = ["t_s", "x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"]
+
+
+def _atomic_write(path: Path, text: str):
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_trajectory(path: Path, traj, actuators: np.ndarray | None = None):
+    t = np.asarray(traj.t)
+    cols = [t[:, None], np.asarray(traj.position), np.asarray(traj.rotation_vector)]
+    header = list(TRAJECTORY_HEADER)
+    if actuators is not None:
+        cols.append(actuators)
+        header += [f"a{i + 1}" for i in range(actuators.shape[1])]
+    data = np.concatenate(cols, axis=1)
+    lines = [",".join(header)] + [",".join(f"{v:.17g}" for v in row) for row in data]
+    _atomic_write(path, "\n".join(lines) + "\n")
+
+
+def write_json(path: Path, obj):
+    _atomic_write(path, json.dumps(obj, indent=2) + "\n")
+
+
+def scene_settings(scene) -> dict:
+    s = scene.solver
+    rod = scene.rod
+    e = scene.effects
+    return {
+        "name": scene.name,
+        "robot": scene.robot,
+        "nodes": s.nodes,
+        "integrator": s.integrator,
+        "dt_s": float(s.dt),
+        "alpha": float(s.alpha),
+        "steps": s.steps,
+        "duration_s": float(s.steps * s.dt),
+        "tol": s.newton.tol,
+        "shooting_segments": s.segments,
+        "effects": {k: getattr(e, k) for k in ("inertia", "gravity", "damping", "drag", "shear_extension")},
+        "rod": {
+            "length_m": float(rod.length),
+            "radius_m": float(rod.radius),
+            "youngs_modulus_pa": float(rod.youngs_modulus),
+            "shear_modulus_pa": float(rod.shear_modulus),
+            "density_kg_m3": float(rod.density),
+        },
+    }
+
+
+def plot_tip(path: Path, traj, title: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(traj.t)
+    p = np.asarray(traj.position)
+    d = (p - p[0]) * 1e3
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for i, lab in enumerate("xyz"):
+        ax[0].plot(t, d[:, i], label=f"{lab} − {lab}(0)")
+    ax[0].set_xlabel("t [s]")
+    ax[0].set_ylabel("tip displacement [mm]")
+    ax[0].legend()
+    ax[0].grid(alpha=0.3)
+    # Path in the plane of largest motion.
+    spread = d.std(axis=0)
+    i, j = np.argsort(spread)[::-1][:2]
+    i, j = sorted((i, j))
+    sc = ax[1].scatter(p[:, i] * 1e3, p[:, j] * 1e3, c=t, s=4, cmap="viridis")
+    ax[1].plot(p[:, i] * 1e3, p[:, j] * 1e3, lw=0.5, color="0.6")
+    ax[1].set_xlabel(f"{'xyz'[i]} [mm]")
+    ax[1].set_ylabel(f"{'xyz'[j]} [mm]")
+    ax[1].set_aspect("equal", adjustable="datalim")
+    ax[1].set_title("tip path")
+    fig.colorbar(sc, ax=ax[1], label="t [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_shapes(path: Path, traj, title: str, count: int = 12):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import cm
+
+    t = np.asarray(traj.t)
+    P = np.asarray(traj.positions)
+    spread = (P.reshape(-1, 3)).std(axis=0)
+    i, j = sorted(np.argsort(spread)[::-1][:2])
+    idx = np.unique(np.linspace(0, len(t) - 1, count).round().astype(int))
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for k in idx:
+        ax.plot(P[k, :, i] * 1e3, P[k, :, j] * 1e3, color=cm.viridis(k / max(1, len(t) - 1)), lw=1.2)
+    ax.set_xlabel(f"{'xyz'[i]} [mm]")
+    ax.set_ylabel(f"{'xyz'[j]} [mm]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    sm = cm.ScalarMappable(cmap="viridis", norm=matplotlib.colors.Normalize(t[0], t[-1]))
+    fig.colorbar(sm, ax=ax, label="t [s]")
+    ax.set_title(f"{title}: rod shapes over time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

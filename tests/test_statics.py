@@ -1,0 +1,98 @@
+"""Statics against closed forms and an independent scipy elastica solver."""
+
+import math
+
+import numpy as np
+import pytest
+from helpers import rod_scene
+from oracles import elastica_tip, euler_bernoulli_tip
+
+import pcrjax
+
+L, R, E, G = 0.4, 1e-3, 207e9, 79.61e9
+EI = E * math.pi * R**4 / 4
+
+
+def test_small_load_matches_euler_bernoulli():
+    F = 1e-3
+    res = pcrjax.solve_static(rod_scene(force=(0, 0, -F), nodes=20, effects={"inertia": False}))
+    deflection = -float(res.position[2])
+    expected = euler_bernoulli_tip(F, L, E, R)
+    assert abs(deflection / expected - 1) <= 1e-4
+    # Global balance at the clamp: n(0) = F, m(0) = L e_x x F.
+    n0, m0 = np.asarray(res.base_wrenches[0])
+    np.testing.assert_allclose(n0, [0, 0, -F], atol=1e-15)
+    np.testing.assert_allclose(m0, [0, F * L, 0], rtol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def elastica_reference():
+    return elastica_tip(1.0)
+
+
+def _elastica(shear_extension, nodes=64):
+    P = EI / L**2  # P L^2 / EI = 1
+    scene = rod_scene(force=(0, 0, -P), nodes=nodes, effects={"inertia": False, "shear_extension": shear_extension})
+    res = pcrjax.solve_static(scene)
+    p = np.asarray(res.position)
+    R_tip = np.asarray(res.rotation)
+    tangent = R_tip[:, 2]
+    return -p[2] / L, 1 - p[0] / L, math.atan2(-tangent[2], tangent[0])
+
+
+def test_large_deflection_kirchhoff_matches_elastica(elastica_reference):
+    got = _elastica(False)
+    # The independent solver agrees with Bisshopp & Drucker's printed digits ...
+    np.testing.assert_allclose(elastica_reference, (0.30172, 0.05643, 0.46135), atol=0.5e-5)
+    # ... and pcrjax's inextensible rod with it, to 1e-5 relative (RK4 N = 64 is ~1e-9).
+    np.testing.assert_allclose(got, elastica_reference, rtol=1e-5)
+
+
+def test_cosserat_differs_from_kirchhoff_only_by_shear_extension(elastica_reference):
+    got = np.asarray(_elastica(True))
+    rel = np.abs(got / np.asarray(elastica_reference) - 1)
+    # Shear/extension compliance relative to bending: EI/(GA L^2) ~ r^2/L^2 ~ 1e-5.
+    assert np.all(rel < 1e-4)
+    assert np.max(rel) > 1e-7  # the effect exists
+
+
+def _order(integrator, Ns):
+    P = 0.5 * EI / L**2
+    ref = pcrjax.solve_static(rod_scene(force=(0, 0, -P), nodes=512, integrator="rk4", effects={"inertia": False}))
+    errs = []
+    for N in Ns:
+        res = pcrjax.solve_static(rod_scene(force=(0, 0, -P), nodes=N, integrator=integrator, effects={"inertia": False}))
+        errs.append(float(np.linalg.norm(np.asarray(res.position) - np.asarray(ref.position))))
+    errs = np.asarray(errs)
+    return np.log2(errs[:-1] / errs[1:])
+
+
+def test_rk4_is_fourth_order():
+    orders = _order("rk4", [8, 16, 32])
+    assert np.all((orders > 3.5) & (orders < 4.5)), orders
+
+
+def test_euler_is_first_order():
+    orders = _order("euler", [16, 32, 64])
+    assert np.all((orders > 0.8) & (orders < 1.2)), orders
+
+
+def test_gravity_uniform_load_matches_euler_bernoulli():
+    # Small rod weight only: tip deflection w L^4 / (8 EI) with w = rho A g.
+    rho = 8000.0
+    w = rho * math.pi * R**2 * 1e-3
+    res = pcrjax.solve_static(
+        rod_scene(force=(0, 0, 0), rho=rho, gravity=(0, 0, -1e-3), nodes=20, effects={"inertia": False, "gravity": True})
+    )
+    assert abs(-float(res.position[2]) / (w * L**4 / (8 * EI)) - 1) < 1e-4
+
+
+def test_precurved_rod_is_a_circular_arc():
+    kappa = 2.0  # 1/m about local y: the arc bends the tangent from +x towards ...
+    res = pcrjax.solve_static(
+        rod_scene(force=(0, 0, 0), nodes=20, effects={"inertia": False}, rod_extra={"precurvature": [0.0, kappa, 0.0]})
+    )
+    # Local frame at the clamp: x = +z (normal), y = -y, z = +x. A curvature about local y
+    # rotates the tangent towards local x = +z: tip = (sin(kL), 0, 1 - cos(kL)) / k.
+    expected = np.array([math.sin(kappa * L), 0.0, 1 - math.cos(kappa * L)]) / kappa
+    np.testing.assert_allclose(np.asarray(res.position), expected, atol=1e-12)
