@@ -166,7 +166,17 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
     def tangent_solve(g, y):
         return jnp.linalg.solve(jac_fn(g, y), y)
 
-    x, (jac, stats) = jax.lax.custom_root(fn, x0, forward, tangent_solve, has_aux=True)
+    # custom_root gives integer auxiliary outputs integer tangents, which JAX then rejects; the
+    # integers (LU pivots, counters) therefore cross it as floats and are cast back here.
+    def forward_float(f, guess):
+        x, aux = forward(f, guess)
+        return x, jax.tree.map(lambda a: a.astype(x.dtype), aux)
+
+    x, aux = jax.lax.custom_root(fn, x0, forward_float, tangent_solve, has_aux=True)
+    aux = jax.lax.stop_gradient(aux)
+    jac, stats = aux
+    jac = Jacobian(jac.matrix, jac.lu, jac.piv.astype(jnp.int32))
+    stats = Stats(stats.iterations.astype(jnp.int32), stats.residual, stats.jacobians.astype(jnp.int32), stats.evaluations.astype(jnp.int32))
     return x, jac, stats
 
 

@@ -283,8 +283,8 @@ def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max
 
 def default_unroll(nodes: int) -> int:
     """Scan unroll factor. Unrolling did not speed up N = 40..150 on XLA:CPU (the cost is in the
-    fused kernels, not the loop) but multiplied compile time, so only tiny rods are unrolled."""
-    return nodes if nodes <= 10 else 1
+    fused kernels, not the loop) but multiplied compile time (3x at unroll 5), so it is off."""
+    return 1
 
 
 def with_solver(scene: Scene, **changes) -> Scene:

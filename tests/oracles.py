@@ -64,3 +64,26 @@ def fit_sinusoids(t, y, omegas, decaying=False):
     res = least_squares(lambda p: (model(p) - y) / scale, p0, xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=20000)
     p = res.x
     return [(p[1 + 4 * k], p[4 + 4 * k] if decaying else 0.0) for k in range(K)], np.max(np.abs(res.fun))
+
+
+def window_amplitudes(t, y, omega, other_omegas=(), periods_per_window=2.0):
+    """First-mode amplitude in consecutive windows by linear least squares at fixed frequencies.
+
+    Components far from ``omega`` (e.g. under-resolved modes near the Nyquist limit) average out
+    over a window. Returns (window centres, amplitudes).
+    """
+    t = np.asarray(t)
+    y = np.asarray(y)
+    T = periods_per_window * 2 * np.pi / omega
+    centres, amps = [], []
+    start = t[0]
+    while start + T <= t[-1] + 1e-12:
+        sel = (t >= start) & (t < start + T)
+        cols = [np.ones(sel.sum()), np.cos(omega * t[sel]), np.sin(omega * t[sel])]
+        for w in other_omegas:
+            cols += [np.cos(w * t[sel]), np.sin(w * t[sel])]
+        coef, *_ = np.linalg.lstsq(np.stack(cols, axis=1), y[sel], rcond=None)
+        centres.append(start + T / 2)
+        amps.append(math.hypot(coef[1], coef[2]))
+        start += T
+    return np.asarray(centres), np.asarray(amps)

@@ -1,0 +1,84 @@
+"""Dynamics against Euler-Bernoulli modal theory and BDF-alpha scheme theory."""
+
+import math
+
+import numpy as np
+import pytest
+from helpers import rod_scene
+from oracles import first_frequency_hz, fit_sinusoids, window_amplitudes
+
+import pcrjax
+from pcrjax.bdf_alpha import amplification
+
+F1 = first_frequency_hz(0.4, 207e9, 1e-3, 8000.0)  # 8.895 Hz
+W1 = 2 * math.pi * F1
+
+
+def _tip_z(scene):
+    tr = pcrjax.simulate(scene)
+    return np.asarray(tr.t), np.asarray(tr.position)[:, 2]
+
+
+def test_first_frequency_matches_euler_bernoulli():
+    assert abs(F1 - 8.895) < 1e-3
+    dt = 0.05 / W1  # trapezoidal period error (h^2/12) ~ 2e-4 relative
+    # N = 40: the history interpolation error at RK4 half steps is O(c0 ds^4) (see spatial.py).
+    t, z = _tip_z(rod_scene(force=(0, 0, -1e-3), nodes=40, dt=dt, alpha=-0.5, duration=1.2))
+    (w1, _), (w2, _) = fit_sinusoids(t, z, [W1, 6.27 * W1])[0]
+    f = w1 / (2 * math.pi)
+    assert abs(f / 8.895 - 1) < 1e-3, f
+
+
+@pytest.mark.parametrize("alpha,expected", [(-0.5, 1.000), (-0.4, 0.981), (-0.2, 0.935), (0.0, 0.886)])
+def test_bdf_alpha_numerical_damping_at_h_half(alpha, expected):
+    # h = omega dt = 0.5 for the first mode; amplitude ratio over one true period 2 pi / omega.
+    dt = 0.5 / W1
+    periods = 22 if alpha == -0.5 else 12
+    t, z = _tip_z(rod_scene(force=(0, 0, -1e-3), nodes=20, dt=dt, alpha=alpha, duration=periods / F1))
+    skip = t > 2.0 / F1  # higher modes of alpha > -0.5 are damped within two periods
+    (w1, _), (w2, _) = fit_sinusoids(t[skip], z[skip], [0.97 * W1, 3.0 / dt])[0]
+    centres, amps = window_amplitudes(t[skip], z[skip], w1, [w2])
+    # Decay rate per true period from a straight-line fit of log amplitude over all windows.
+    slope = np.polyfit(centres * F1, np.log(amps), 1)[0]
+    ratio = math.exp(slope)
+    z_theory = amplification(0.5, alpha)
+    theory = abs(z_theory) ** (2 * math.pi / 0.5)
+    assert abs(theory - expected) < 1e-3  # the scheme's own prediction (pure theory)
+    assert abs(ratio / expected - 1) < 0.01, (ratio, expected)
+    # The numerical frequency is the scheme's too: arg(z)/dt (trapezoid: 2 atan(h/2)/dt).
+    assert abs(w1 / (np.angle(z_theory) / dt) - 1) < 2e-3, (w1, np.angle(z_theory) / dt)
+    if alpha == -0.5:
+        assert abs(ratio**20 - 1) < 1e-3, amps  # no decay over 20 periods
+
+
+def _rest_drift(integrator, nodes):
+    # Load held for the whole run: the static equilibrium should be a solution of every step.
+    scene = rod_scene(force=(0, 0, -2.0), release_time=10.0, nodes=nodes, dt=5e-3, alpha=-0.2, duration=0.25, integrator=integrator)
+    tr = pcrjax.simulate(scene)
+    return np.abs(np.asarray(tr.position) - np.asarray(tr.position)[0]).max()
+
+
+def test_equilibrium_stays_put_when_load_is_held_euler():
+    assert _rest_drift("euler", 20) < 1e-12
+
+
+def test_rk4_rest_drift_is_a_fourth_order_discretisation_error():
+    # RK4 evaluates the history at half steps by interpolation (spatial.py); at rest that gives
+    # an O(c0 ds^4) offset, which must vanish at RK4's order as N grows.
+    d = np.array([_rest_drift("rk4", n) for n in (10, 20, 40)])
+    orders = np.log2(d[:-1] / d[1:])
+    assert np.all((orders > 3.5) & (orders < 4.5)), (d, orders)
+    assert d[-1] < 1e-7
+
+
+def test_kelvin_voigt_damping_matches_modal_damping_ratio():
+    # B = tau K: mode 1 damping ratio zeta = tau omega / 2 (Euler-Bernoulli with Kelvin-Voigt).
+    tau = 2e-4
+    dt = 0.05 / W1
+    scene = rod_scene(
+        force=(0, 0, -1e-3), nodes=20, dt=dt, alpha=-0.5, duration=0.8, effects={"damping": True}, rod_extra={"tau": tau}
+    )
+    t, z = _tip_z(scene)
+    (w1, s1), _ = fit_sinusoids(t, z, [W1, 6.27 * W1], decaying=True)[0]
+    zeta = -s1 / math.hypot(s1, w1)
+    assert abs(zeta / (tau * W1 / 2) - 1) < 0.01, (zeta, tau * W1 / 2)
