@@ -76,7 +76,8 @@ def solve_static(scene, t=0.0, load_scale=None) -> StaticSolution:
     m0 = M + cross(L * d, F) + cross(0.5 * L * d, w)
     x0 = jnp.concatenate([n0 / sc.force, m0 / sc.moment])
     residual = lambda x: homotopy(x, 1.0)  # noqa: E731
-    x, _, stats = newton.solve(residual, jax.lax.stop_gradient(x0), newton.Jacobian.empty(6), _colouring(layout), s.newton, True, homotopy)
+    fallback = newton.continuation(homotopy, 10, layout.size)
+    x, _, stats = newton.solve(residual, jax.lax.stop_gradient(x0), newton.Jacobian.empty(6), _colouring(layout), s.newton, True, fallback)
     nodes, _ = shoot(layout, x, y0, R_ref, hist, k, effects, ds, s.integrator, sc, s.unroll)
     return StaticSolution(nodes=nodes, unknowns=x, stats=stats)
 
@@ -150,13 +151,16 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     R_ref = _segment_rotations(layout, state.nodes)
 
     def residual(x):
-        nodes, junctions = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll)
+        nodes, junctions = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, s.substeps)
         return jnp.concatenate([junctions, _tip_residual(nodes, F, M, sc)])
 
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2 if extrapolate else x1)
-    x, jac, stats = newton.solve(residual, guess, state.jac, _colouring(layout), s.newton, ~state.has_jac)
-    nodes, _ = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll)
+    # If Newton fails from the extrapolated start (e.g. under-damped high modes flipping sign each
+    # step), it is retried from the last step's solution with a fresh Jacobian.
+    retry = (lambda z, _s: residual(z), jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
+    x, jac, stats = newton.solve(residual, guess, state.jac, _colouring(layout), s.newton, ~state.has_jac, retry)
+    nodes, _ = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, s.substeps)
     z = jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects))(nodes, state.history)
     history = bdf_alpha.next_history(co, z, state.z_prev, state.history)
     # Unknowns of this step expressed relative to this step's reference rotations, so that the

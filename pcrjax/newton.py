@@ -131,36 +131,37 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
     return x, jac, Stats(iterations=jnp.asarray(it), residual=nrm, jacobians=jnp.asarray(nj), evaluations=jnp.asarray(ev))
 
 
-def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, homotopy=None):
+def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
     ``jac_fn(f, x)`` gives the Jacobian of ``f`` at ``x`` (used both by the forward Newton and, on
     the linearised function, for the tangent solve of the implicit function theorem).
-    ``homotopy(x, s)``, if given, is a family of residuals with ``homotopy(x, 1) == fn(x)`` and
-    root ``x = 0`` at ``s = 0``: when Newton from ``x0`` fails, the solve is continued from
-    ``s = 0.1`` to 1 in ten stages (globalisation for far starts; traced once, run only if needed).
+
+    ``fallback``, if given, is ``(homotopy, s, starts, chain)``: stages tried in order only while
+    the solve has not converged (traced once, run only if needed). Stage k solves
+    ``homotopy(x, s[k]) = 0`` (with ``homotopy(x, 1) == fn(x)``) from ``starts[k]``, or, where
+    ``chain[k]``, from stage k-1's result, with a fresh Jacobian. Load continuation and a restart
+    from the previous time step are both written this way.
     """
 
     def forward(f, guess):
-        if homotopy is None:
-            x, jac, stats = newton(f, guess, jac0, jac_fn, settings, need_jacobian)
+        x, jac, stats = newton(f, guess, jac0, jac_fn, settings, need_jacobian)
+        if fallback is None:
             return x, (jac, stats)
-        stages = jnp.concatenate([jnp.ones(1), jnp.linspace(0.1, 1.0, 10)])
-        starts = jnp.arange(11) == 1  # stage 1 starts from the unloaded root x = 0
+        homotopy, svals, starts, chain = fallback
 
         def stage(carry, inp):
             x, jac, done, total = carry
-            s, from_zero = inp
+            s, start, from_prev = inp
 
             def run():
-                xs = jnp.where(from_zero, jnp.zeros_like(x), x)
-                x2, jac2, st = newton(lambda z: homotopy(z, s), xs, jac, jac_fn, settings, True)
+                x2, jac2, st = newton(lambda z: homotopy(z, s), jnp.where(from_prev, x, start), jac, jac_fn, settings, True)
                 return x2, jac2, (s == 1.0) & (st.residual <= settings.tol), _add(total, st)
 
             return jax.lax.cond(done, lambda: (x, jac, done, total), run), None
 
-        zero = Stats(*(jnp.asarray(v) for v in (0, jnp.inf, 0, 0)))
-        (x, jac, _, total), _ = jax.lax.scan(stage, (guess, jac0, jnp.asarray(False), zero), (stages, starts))
+        done = stats.residual <= settings.tol
+        (x, jac, _, total), _ = jax.lax.scan(stage, (x, jac, done, stats), (svals, starts, chain))
         return x, (jac, total)
 
     def tangent_solve(g, y):
@@ -182,3 +183,10 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
 
 def _add(total: Stats, st: Stats) -> Stats:
     return Stats(total.iterations + st.iterations, st.residual, total.jacobians + st.jacobians, total.evaluations + st.evaluations)
+
+
+def continuation(homotopy, n: int, size: int, dtype=jnp.float64):
+    """Fallback stages for load continuation: s = 1/n .. 1, starting from the root x = 0 at s = 0."""
+    svals = jnp.linspace(1.0 / n, 1.0, n, dtype=dtype)
+    chain = jnp.arange(n) > 0
+    return homotopy, svals, jnp.zeros((n, size), dtype), chain

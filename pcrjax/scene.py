@@ -20,7 +20,8 @@ import numpy as np
 from . import bdf_alpha
 from .newton import NewtonSettings
 from .rod import DiagonalDamping, Effects, Rod, TauDamping
-from .shooting import auto_segments
+from .shooting import auto_segments, boundary_layer_rate
+from .spatial import stable_substeps
 from .spatial import INTEGRATORS
 
 
@@ -53,6 +54,7 @@ class Solver(eqx.Module):
     steps: int = eqx.field(static=True)
     segments: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
+    substeps: int = eqx.field(static=True, default=1)
     newton: NewtonSettings = NewtonSettings()
 
     @property
@@ -264,9 +266,12 @@ def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
 
 def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max_iter=50, segments="auto", unroll=None) -> Solver:
     """Solver settings; ``segments="auto"`` picks the multiple-shooting split from dt and alpha."""
+    c0 = float(bdf_alpha.coefficients(dt, alpha).c0)
+    lam = boundary_layer_rate(float(rod.radius), float(rod.youngs_modulus), float(rod.shear_modulus), float(rod.density), c0)
     if segments == "auto":
-        c0 = float(bdf_alpha.coefficients(dt, alpha).c0)
-        segments = auto_segments(nodes, float(rod.length), float(rod.radius), float(rod.youngs_modulus), float(rod.shear_modulus), float(rod.density), c0)
+        segments = auto_segments(nodes, float(rod.length), lam)
+    # Intervals longer than the boundary layer are integrated in stable sub-steps (spatial.py).
+    substeps = stable_substeps(lam * float(rod.length) / nodes, integrator)
     if unroll is None:
         unroll = default_unroll(nodes)
     return Solver(
@@ -277,6 +282,7 @@ def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max
         steps=int(round(duration / dt)),
         segments=int(segments),
         unroll=int(unroll),
+        substeps=int(substeps),
         newton=NewtonSettings(tol=float(tol), max_iter=int(max_iter)),
     )
 

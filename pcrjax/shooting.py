@@ -46,11 +46,15 @@ def make_scales(rod, c0=None) -> Scales:
     return Scales(length=L, force=rod.bending_stiffness / L**2, velocity=L * c0, angular=c0)
 
 
-def auto_segments(nodes, length, radius, E, G, rho, c0) -> int:
-    """Number of shooting segments for a dynamic step (Python numbers, decided before tracing)."""
+def boundary_layer_rate(radius, E, G, rho, c0) -> float:
+    """$\lambda$ (1/m): fastest spatial growth/decay rate of a dynamic step's rod equations."""
     A = math.pi * radius**2
     EI = E * 0.25 * math.pi * radius**4
-    lam = max((rho * A * c0**2 / EI) ** 0.25, c0 * math.sqrt(rho / min(E, G)))
+    return max((rho * A * c0**2 / EI) ** 0.25, c0 * math.sqrt(rho / min(E, G)))
+
+
+def auto_segments(nodes, length, lam) -> int:
+    """Number of shooting segments for a dynamic step (Python numbers, decided before tracing)."""
     return int(min(nodes, max(1, math.ceil(lam * length / SEGMENT_CONDITIONING))))
 
 
@@ -128,17 +132,17 @@ def junction_residuals(layout: Layout, arrivals, restarts, sc: Scales):
     return jax.vmap(one)(arrivals, restarts).reshape(-1)
 
 
-def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1):
+def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1, substeps=1):
     """Integrate the rod for unknowns ``x``; returns (nodes, junction residuals).
 
     ``base_state`` is the state at s = 0 with zero wrench; x[0:6] sets the scaled base wrench.
     """
     y0 = base_state.at[12:15].set(x[0:3] * sc.force).at[15:18].set(x[3:6] * sc.moment)
     if layout.segments == 1:
-        nodes, _ = integrate(y0, history, k, effects, ds, integrator, unroll=unroll)
+        nodes, _ = integrate(y0, history, k, effects, ds, integrator, unroll=unroll, substeps=substeps)
         return nodes, jnp.zeros((0,), x.dtype)
     restarts = restart_states(layout, x, R_ref, sc)
-    nodes, arrivals = integrate(y0, history, k, effects, ds, integrator, layout.starts, restarts, unroll=unroll)
+    nodes, arrivals = integrate(y0, history, k, effects, ds, integrator, layout.starts, restarts, unroll=unroll, substeps=substeps)
     return nodes, junction_residuals(layout, arrivals, restarts, sc)
 
 
