@@ -50,16 +50,16 @@ def solve_static(scene, t=0.0, load_scale=None) -> StaticSolution:
     """Static equilibrium of the rod under the tip load at time ``t`` (gravity if switched on)."""
     s = scene.solver
     effects = dataclasses.replace(scene.effects, inertia=False)
-    layout = Layout(nodes=s.nodes, segments=1, inertia=False)
+    layout = Layout(nodes=s.grid_nodes, segments=1, inertia=False)
     rod = scene.rod
     k = coefficients(rod, effects, jnp.zeros(()), scene.gravity)
     sc = make_scales(rod)
-    ds = rod.length / s.nodes
+    ds = rod.length / s.grid_nodes
     F, M = tip_load(scene, jnp.asarray(t, jnp.float64))
     if load_scale is not None:
         F, M = load_scale * F, load_scale * M
     y0 = base_state(scene, False)
-    hist = jnp.zeros((s.nodes + 1, HISTORY_DIM))
+    hist = jnp.zeros((s.grid_nodes + 1, HISTORY_DIM))
     R_ref = jnp.zeros((0, 3, 3))
 
     def homotopy(x, lam):
@@ -94,7 +94,7 @@ class StepState(eqx.Module):
 
 
 def dynamic_layout(scene) -> Layout:
-    return Layout(nodes=scene.solver.nodes, segments=scene.solver.segments, inertia=True)
+    return Layout(nodes=scene.solver.grid_nodes, segments=scene.solver.segments, inertia=True)
 
 
 def initial_step_state(scene, static: StaticSolution) -> StepState:
@@ -102,8 +102,8 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     layout = dynamic_layout(scene)
     s = scene.solver
     co = bdf_alpha.coefficients(s.dt, s.alpha)
-    nodes = jnp.concatenate([static.nodes, jnp.zeros((s.nodes + 1, 6))], axis=1)
-    zero_h = jnp.zeros((s.nodes + 1, HISTORY_DIM))
+    nodes = jnp.concatenate([static.nodes, jnp.zeros((s.grid_nodes + 1, 6))], axis=1)
+    zero_h = jnp.zeros((s.grid_nodes + 1, HISTORY_DIM))
     # At rest the strains follow from the loads with any history satisfying h = -c0 z; compute z
     # with the damping-free law first (identical at rest), then the rest history.
     k_static = coefficients(scene.rod, dataclasses.replace(scene.effects, damping=False), co.c0, scene.gravity)
@@ -145,13 +145,13 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     co = bdf_alpha.coefficients(s.dt, s.alpha)
     k = coefficients(scene.rod, scene.effects, co.c0, scene.gravity)
     sc = make_scales(scene.rod, co.c0)
-    ds = scene.rod.length / s.nodes
+    ds = scene.rod.length / s.grid_nodes
     F, M = tip_load(scene, t)
     y0 = base_state(scene, True)
     R_ref = _segment_rotations(layout, state.nodes)
 
     def residual(x):
-        nodes, junctions = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, s.substeps)
+        nodes, junctions = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll)
         return jnp.concatenate([junctions, _tip_residual(nodes, F, M, sc)])
 
     x1, x2 = state.unknowns[0], state.unknowns[1]
@@ -160,7 +160,7 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     # step), it is retried from the last step's solution with a fresh Jacobian.
     retry = (lambda z, _s: residual(z), jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
     x, jac, stats = newton.solve(residual, guess, state.jac, _colouring(layout), s.newton, ~state.has_jac, retry)
-    nodes, _ = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, s.substeps)
+    nodes, _ = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll)
     z = jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects))(nodes, state.history)
     history = bdf_alpha.next_history(co, z, state.z_prev, state.history)
     # Unknowns of this step expressed relative to this step's reference rotations, so that the
@@ -176,5 +176,5 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
         jac=jax.lax.stop_gradient(jac),
         has_jac=jnp.asarray(True),
     )
-    out = StepOutput(tip_position=nodes[-1, 0:3], tip_rotation=nodes[-1, 3:12].reshape(3, 3), positions=nodes[:, 0:3], stats=stats)
+    out = StepOutput(tip_position=nodes[-1, 0:3], tip_rotation=nodes[-1, 3:12].reshape(3, 3), positions=nodes[:: s.refine, 0:3], stats=stats)
     return new_state, out

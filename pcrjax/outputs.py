@@ -48,6 +48,7 @@ def scene_settings(scene) -> dict:
         "duration_s": float(s.steps * s.dt),
         "tol": s.newton.tol,
         "shooting_segments": s.segments,
+        "internal_nodes": s.grid_nodes,
         "effects": {k: getattr(e, k) for k in ("inertia", "gravity", "damping", "drag", "shear_extension")},
         "rod": {
             "length_m": float(rod.length),

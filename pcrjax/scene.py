@@ -21,7 +21,7 @@ from . import bdf_alpha
 from .newton import NewtonSettings
 from .rod import DiagonalDamping, Effects, Rod, TauDamping
 from .shooting import auto_segments, boundary_layer_rate
-from .spatial import stable_substeps
+from .spatial import refinement
 from .spatial import INTEGRATORS
 
 
@@ -54,7 +54,12 @@ class Solver(eqx.Module):
     steps: int = eqx.field(static=True)
     segments: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
-    substeps: int = eqx.field(static=True, default=1)
+    refine: int = eqx.field(static=True, default=1)
+
+    @property
+    def grid_nodes(self) -> int:
+        """Nodes of the internal integration grid: ``nodes * refine`` (outputs use every refine-th)."""
+        return self.nodes * self.refine
     newton: NewtonSettings = NewtonSettings()
 
     @property
@@ -254,7 +259,7 @@ def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
     if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
         r.fail("[solver] max_iter", f"must be a positive integer, got {max_iter!r}")
     segments = sv.get("segments", "auto")
-    if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):
+    if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):  # noqa: E501
         r.fail("[solver] segments", f"must be \"auto\" or an integer in [1, nodes], got {segments!r}")
     unroll = sv.get("unroll", None)
     if unroll is not None and (isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 1):
@@ -268,10 +273,12 @@ def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max
     """Solver settings; ``segments="auto"`` picks the multiple-shooting split from dt and alpha."""
     c0 = float(bdf_alpha.coefficients(dt, alpha).c0)
     lam = boundary_layer_rate(float(rod.radius), float(rod.youngs_modulus), float(rod.shear_modulus), float(rod.density), c0)
+    # Node spacing longer than the boundary layer: integrate on a finer internal grid (spatial.py).
+    refine = refinement(lam * float(rod.length) / nodes, integrator)
     if segments == "auto":
-        segments = auto_segments(nodes, float(rod.length), lam)
-    # Intervals longer than the boundary layer are integrated in stable sub-steps (spatial.py).
-    substeps = stable_substeps(lam * float(rod.length) / nodes, integrator)
+        segments = auto_segments(nodes * refine, float(rod.length), lam)
+    elif refine > 1:
+        segments = segments * refine if segments > 1 else segments
     if unroll is None:
         unroll = default_unroll(nodes)
     return Solver(
@@ -282,7 +289,7 @@ def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max
         steps=int(round(duration / dt)),
         segments=int(segments),
         unroll=int(unroll),
-        substeps=int(substeps),
+        refine=int(refine),
         newton=NewtonSettings(tol=float(tol), max_iter=int(max_iter)),
     )
 

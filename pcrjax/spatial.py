@@ -25,51 +25,18 @@ from .rod import rhs
 INTEGRATORS = ("rk4", "euler")
 
 
-def _cubic_weights(n_intervals: int, substeps: int) -> tuple[np.ndarray, np.ndarray]:
-    """Static interpolation of node histories at sub-step points.
-
-    For interval i the points are at fractions j/(2K), j = 0..2K (sub-step starts, midpoints and
-    ends); each is a cubic Lagrange interpolation through 4 nodes starting at ``base[i]``
-    (one-sided near the ends, linear if there are fewer than 4 nodes). Returns (base, weights)
-    with weights of shape (N, 2K+1, 4).
-    """
-    K = substeps
-    frac = np.arange(2 * K + 1) / (2 * K)
-    if n_intervals < 3:
-        base = np.arange(n_intervals)
-        w = np.zeros((n_intervals, 2 * K + 1, 4))
-        w[:, :, 0] = 1 - frac
-        w[:, :, 1] = frac
-        return base, w
-    base = np.clip(np.arange(n_intervals) - 1, 0, n_intervals - 3)
-    x = (np.arange(n_intervals) - base)[:, None] + frac[None, :]  # position within the stencil
-    w = np.ones((n_intervals, 2 * K + 1, 4))
-    for m in range(4):
-        for q in range(4):
-            if q != m:
-                w[:, :, m] *= (x - q) / (m - q)
-    return base, w
+def midpoints(history):
+    """History at the N half steps by cubic interpolation (one-sided at the ends; linear if N < 3)."""
+    h = history
+    if h.shape[0] < 4:
+        return 0.5 * (h[:-1] + h[1:])
+    inner = (-h[:-3] + 9.0 * h[1:-2] + 9.0 * h[2:-1] - h[3:]) / 16.0
+    first = (5.0 * h[0] + 15.0 * h[1] - 5.0 * h[2] + h[3]) / 16.0
+    last = (5.0 * h[-1] + 15.0 * h[-2] - 5.0 * h[-3] + h[-4]) / 16.0
+    return jnp.concatenate([first[None], inner, last[None]])
 
 
-def substep_history(history, substeps: int):
-    """History at the sub-step points of every interval: (N, 2K+1, 12). With K = 1 the middle
-    point is the classic cubic midpoint $(-h_{i-1} + 9h_i + 9h_{i+1} - h_{i+2})/16$."""
-    n = history.shape[0] - 1
-    base, w = _cubic_weights(n, substeps)
-    idx = base[:, None] + np.arange(4)[None, :]
-    idx = np.minimum(idx, n)
-    stencil = history[idx]  # (N, 4, 12)
-    return jnp.einsum("ijm,imk->ijk", jnp.asarray(w, history.dtype), stencil)
-
-
-def stable_substeps(lam_ds: float, integrator: str) -> int:
-    """Sub-steps per interval keeping $\lambda\,ds/K$ inside the explicit method's real-axis
-    stability interval (RK4: 2.78, Euler: 2), with margin."""
-    limit = 2.0 if integrator == "rk4" else 1.0
-    return max(1, int(np.ceil(lam_ds / limit)))
-
-
-def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1, substeps=1):
+def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1):
     r"""Integrate from node 0 to node N.
 
     **Arguments:**
@@ -80,9 +47,6 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
     - ``integrator``: "rk4" or "euler" (static).
     - ``segment_starts``: static tuple of node indices (>0) where a new segment starts.
     - ``restarts``: (len(segment_starts), dim) start states of those segments.
-    - ``substeps``: static number of sub-steps per interval (history interpolated cubically);
-      used when the boundary layer $1/\lambda$ is thinner than the node spacing, where one
-      explicit step would amplify the decaying solution instead of damping it.
 
     **Returns:** ``(nodes, arrivals)``: the state at all N+1 nodes (after restarts) and the
     states arriving at each segment start before the restart (or None).
@@ -90,35 +54,22 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
     n_steps = history.shape[0] - 1
     f = lambda y, h: rhs(y, h, k, effects)  # noqa: E731
 
-    K = substeps
-    dsk = ds / K
-
-    def one(y, h0, hm, h1):
+    def step(y, h0, h1, hm):
         if integrator == "euler":
-            return y + dsk * f(y, h0)
+            return y + ds * f(y, h0)
         k1 = f(y, h0)
-        k2 = f(y + 0.5 * dsk * k1, hm)
-        k3 = f(y + 0.5 * dsk * k2, hm)
-        k4 = f(y + dsk * k3, h1)
-        return y + (dsk / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
-
-    def step(y, hsub):
-        # hsub: (2K+1, 12) history at the sub-step starts, midpoints and ends.
-        if K == 1:
-            return one(y, hsub[0], None, None) if integrator == "euler" else one(y, hsub[0], hsub[1], hsub[2])
-        triples = jnp.stack([hsub[0:-1:2], hsub[1::2], hsub[2::2]], axis=1)  # (K, 3, 12)
-        y, _ = jax.lax.scan(lambda yy, h: (one(yy, h[0], h[1], h[2]), None), y, triples)
-        return y
-
-    hsub = substep_history(history, K) if (integrator == "rk4" or K > 1) else history[:-1, None, :]
+        k2 = f(y + 0.5 * ds * k1, hm)
+        k3 = f(y + 0.5 * ds * k2, hm)
+        k4 = f(y + ds * k3, h1)
+        return y + (ds / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
 
     if not segment_starts:
 
         def body(y, hh):
-            y_next = step(y, hh)
+            y_next = step(y, *hh)
             return y_next, y_next
 
-        _, ys = jax.lax.scan(body, y0, hsub, unroll=unroll)
+        _, ys = jax.lax.scan(body, y0, (history[:-1], history[1:], midpoints(history)), unroll=unroll)
         return jnp.concatenate([y0[None], ys]), None
 
     flags = np.zeros(n_steps + 1, dtype=bool)
@@ -126,14 +77,27 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
     replace = jnp.zeros((n_steps + 1, y0.shape[0]), y0.dtype).at[np.asarray(segment_starts)].set(restarts)
 
     def body_ms(y, xs):
-        hh, flag, rep = xs
+        h0, h1, hm, flag, rep = xs
         y_in = jnp.where(flag, rep, y)
-        y_next = step(y_in, hh)
+        y_next = step(y_in, h0, h1, hm)
         return y_next, (y_in, y)
 
     y_last, (ys_in, ys_arrived) = jax.lax.scan(
-        body_ms, y0, (hsub, jnp.asarray(flags[:-1]), replace[:-1]), unroll=unroll
+        body_ms, y0, (history[:-1], history[1:], midpoints(history), jnp.asarray(flags[:-1]), replace[:-1]), unroll=unroll
     )
     nodes = jnp.concatenate([ys_in, y_last[None]])
     arrivals = ys_arrived[np.asarray(segment_starts)]
     return nodes, arrivals
+
+
+def refinement(lam_ds: float, integrator: str) -> int:
+    r"""Internal nodes per output node so that $\lambda\,ds$ stays inside the explicit method's
+    real-axis stability interval (RK4: 2.78, Euler: 2), with margin.
+
+    When a dynamic step's boundary layer ($1/\lambda$, millimetres at $\delta t = 10^{-5}$ s) is
+    thinner than the node spacing, one explicit step amplifies the decaying solution instead of
+    damping it and the shooting problem has no well-posed solution. pcrjax then integrates on a
+    finer internal grid (histories kept at every internal node) and reports the user's nodes.
+    """
+    limit = 2.0 if integrator == "rk4" else 1.0
+    return max(1, int(np.ceil(lam_ds / limit)))
