@@ -148,6 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--integrators", default="rk4,euler")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
     p.add_argument("--reference-nodes", type=int, default=320, help="N of the converged RK4 reference")
+    p.add_argument("--tol", type=float, default=1e-10, help="Newton tolerance of the measured runs (reference: 1e-12)")
     p.add_argument("--json", help="also write the table as JSON to this file")
     p.set_defaults(func=cmd_bench)
     p = sub.add_parser("scenes", help="list the shipped scenes")

@@ -274,7 +274,7 @@ def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max
     c0 = float(bdf_alpha.coefficients(dt, alpha).c0)
     lam = boundary_layer_rate(float(rod.radius), float(rod.youngs_modulus), float(rod.shear_modulus), float(rod.density), c0)
     # Node spacing longer than the boundary layer: integrate on a finer internal grid (spatial.py).
-    refine = refinement(lam * float(rod.length) / nodes, integrator)
+    refine = refinement(lam * float(rod.length) / nodes)
     if segments == "auto":
         segments = auto_segments(nodes * refine, float(rod.length), lam)
     elif refine > 1:
