@@ -87,3 +87,11 @@ def window_amplitudes(t, y, omega, other_omegas=(), periods_per_window=2.0):
         amps.append(math.hypot(coef[1], coef[2]))
         start += T
     return np.asarray(centres), np.asarray(amps)
+
+
+def cantilever_mode1(s, L):
+    """First Euler-Bernoulli cantilever mode shape, normalised to 1 at the tip."""
+    b = EB_BETA1 / L
+    sig = (math.cosh(EB_BETA1) + math.cos(EB_BETA1)) / (math.sinh(EB_BETA1) + math.sin(EB_BETA1))
+    phi = lambda x: np.cosh(b * x) - np.cos(b * x) - sig * (np.sinh(b * x) - np.sin(b * x))  # noqa: E731
+    return phi(s) / phi(L)
