@@ -46,7 +46,7 @@ class StaticSolution(eqx.Module):
     stats: newton.Stats
 
 
-def solve_static(scene, t=0.0, load_scale=None) -> StaticSolution:
+def solve_static(scene, t=0.0) -> StaticSolution:
     """Static equilibrium of the rod under the tip load at time ``t`` (gravity if switched on)."""
     s = scene.solver
     effects = dataclasses.replace(scene.effects, inertia=False)
@@ -56,8 +56,6 @@ def solve_static(scene, t=0.0, load_scale=None) -> StaticSolution:
     sc = make_scales(rod)
     ds = rod.length / s.grid_nodes
     F, M = tip_load(scene, jnp.asarray(t, jnp.float64))
-    if load_scale is not None:
-        F, M = load_scale * F, load_scale * M
     y0 = base_state(scene, False)
     hist = jnp.zeros((s.grid_nodes + 1, HISTORY_DIM))
     R_ref = jnp.zeros((0, 3, 3))
