@@ -111,7 +111,7 @@ def solve_static(scene: Scene, *, throw: bool = True) -> StaticResult:
 
 
 def _initial(scene: Scene):
-    static = cantilever.solve_static(scene, t=jnp.where(scene.tip.release_time >= 0, 0.0, jnp.inf))
+    static = cantilever.solve_static(scene)  # load at t = 0: on iff release_time >= 0
     return static, cantilever.initial_step_state(scene, static)
 
 
