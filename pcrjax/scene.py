@@ -21,8 +21,7 @@ from . import bdf_alpha
 from .newton import NewtonSettings
 from .rod import DiagonalDamping, Effects, Rod, TauDamping
 from .shooting import auto_segments, boundary_layer_rate
-from .spatial import refinement
-from .spatial import INTEGRATORS
+from .spatial import INTEGRATORS, refinement
 
 
 class SceneError(ValueError):
@@ -55,12 +54,12 @@ class Solver(eqx.Module):
     segments: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
     refine: int = eqx.field(static=True, default=1)
+    newton: NewtonSettings = NewtonSettings()
 
     @property
     def grid_nodes(self) -> int:
         """Nodes of the internal integration grid: ``nodes * refine`` (outputs use every refine-th)."""
         return self.nodes * self.refine
-    newton: NewtonSettings = NewtonSettings()
 
     @property
     def duration(self):
@@ -259,7 +258,7 @@ def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
     if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
         r.fail("[solver] max_iter", f"must be a positive integer, got {max_iter!r}")
     segments = sv.get("segments", "auto")
-    if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):  # noqa: E501
+    if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):
         r.fail("[solver] segments", f"must be \"auto\" or an integer in [1, nodes], got {segments!r}")
     unroll = sv.get("unroll", None)
     if unroll is not None and (isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 1):

@@ -8,8 +8,9 @@ in 12 periods at $h = \omega\delta t = 0.5$ and 20 % at $h = 0.1$ (N = 20). pcrj
 the history cubically (4th order, like RK4): the growth is gone and the first frequency is
 within 1e-4 at N = 40. The remaining error is $O(c_0\,ds^4)$, so very small time steps need
 more nodes (N growing like $\delta t^{-1/4}$). Giving each stage point its own history instead
-(tried) made the trapezoidal scheme unstable (a parasitic mode that alpha = -0.5 does not damp). The scan supports
-multiple shooting: at the first node of each segment the carried state is replaced by that
+(tried) made the trapezoidal scheme unstable (a parasitic mode that alpha = -0.5 does not damp).
+
+The scan supports multiple shooting: at the first node of each segment the carried state is replaced by that
 segment's unknown start state, and the state arriving there is returned so that the caller can
 form continuity residuals.
 """
@@ -63,30 +64,22 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
         k4 = f(y + ds * k3, h1)
         return y + (ds / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
 
-    if not segment_starts:
+    # Euler never evaluates at half steps; RK4 gets the cubically interpolated history there.
+    hm = midpoints(history) if integrator == "rk4" else history[:-1]
+    xs = (history[:-1], history[1:], hm)
+    if segment_starts:
+        flags = np.zeros(n_steps + 1, dtype=bool)
+        flags[list(segment_starts)] = True
+        replace = jnp.zeros((n_steps + 1, y0.shape[0]), y0.dtype).at[np.asarray(segment_starts)].set(restarts)
+        xs = xs + (jnp.asarray(flags[:-1]), replace[:-1])
 
-        def body(y, hh):
-            y_next = step(y, *hh)
-            return y_next, y_next
+    def body(y, x):
+        y_in = jnp.where(x[3], x[4], y) if segment_starts else y
+        return step(y_in, *x[:3]), (y_in, y)
 
-        _, ys = jax.lax.scan(body, y0, (history[:-1], history[1:], midpoints(history)), unroll=unroll)
-        return jnp.concatenate([y0[None], ys]), None
-
-    flags = np.zeros(n_steps + 1, dtype=bool)
-    flags[list(segment_starts)] = True
-    replace = jnp.zeros((n_steps + 1, y0.shape[0]), y0.dtype).at[np.asarray(segment_starts)].set(restarts)
-
-    def body_ms(y, xs):
-        h0, h1, hm, flag, rep = xs
-        y_in = jnp.where(flag, rep, y)
-        y_next = step(y_in, h0, h1, hm)
-        return y_next, (y_in, y)
-
-    y_last, (ys_in, ys_arrived) = jax.lax.scan(
-        body_ms, y0, (history[:-1], history[1:], midpoints(history), jnp.asarray(flags[:-1]), replace[:-1]), unroll=unroll
-    )
+    y_last, (ys_in, ys_arrived) = jax.lax.scan(body, y0, xs, unroll=unroll)
     nodes = jnp.concatenate([ys_in, y_last[None]])
-    arrivals = ys_arrived[np.asarray(segment_starts)]
+    arrivals = ys_arrived[np.asarray(segment_starts)] if segment_starts else None
     return nodes, arrivals
 
 
