@@ -13,10 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import bdf_alpha, newton
-from .rod import HISTORY_DIM, coefficients, kinematic_state
+from . import bdf_alpha, newton, rod_history
+from .rod import coefficients, kinematic_state
+from .rod_history import RodHistory
 from .rotations import cross
 from .shooting import Layout, make_scales, shoot, unknowns_from_nodes
+from .spatial import integrate
 
 
 def tip_load(scene, t):
@@ -57,7 +59,7 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     ds = rod.length / s.grid_nodes
     F, M = tip_load(scene, jnp.asarray(t, jnp.float64))
     y0 = base_state(scene, False)
-    hist = jnp.zeros((s.grid_nodes + 1, HISTORY_DIM))
+    hist = RodHistory.zeros(s.grid_nodes, s.integrator)
     R_ref = jnp.zeros((0, 3, 3))
 
     def homotopy(x, lam):
@@ -85,7 +87,7 @@ class StepState(eqx.Module):
 
     nodes: jnp.ndarray  # (N+1, 24) state at t_{i-1}
     z_prev: jnp.ndarray  # (N+1, 12) [v, u, q, w] at t_{i-1}
-    history: jnp.ndarray  # (N+1, 12) BDF-alpha history for step i
+    history: RodHistory  # BDF-alpha history for step i (nodes and RK4 stage points)
     unknowns: jnp.ndarray  # (2, size) steps i-1 and i-2, both relative to step i-1's rotations
     jac: newton.Jacobian
     has_jac: jnp.ndarray
@@ -101,12 +103,15 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     s = scene.solver
     co = bdf_alpha.coefficients(s.dt, s.alpha)
     nodes = jnp.concatenate([static.nodes, jnp.zeros((s.grid_nodes + 1, 6))], axis=1)
-    zero_h = jnp.zeros((s.grid_nodes + 1, HISTORY_DIM))
-    # At rest the strains follow from the loads with any history satisfying h = -c0 z; compute z
-    # with the damping-free law first (identical at rest), then the rest history.
+    # At rest the dynamic equations reduce to the static ones, so the stage states are the static
+    # ones with zero velocities. Strains follow from the loads with any history satisfying
+    # h = -c0 z; compute z with the damping-free law (identical at rest), then the rest history.
+    stages = _static_stages(scene, static)
     k_static = coefficients(scene.rod, dataclasses.replace(scene.effects, damping=False), co.c0, scene.gravity)
-    z = jax.vmap(lambda y, h: kinematic_state(y, h, k_static, scene.effects))(nodes, zero_h)
-    history = bdf_alpha.rest_history(co, z)
+    z_of = jax.vmap(lambda y: kinematic_state(y, jnp.zeros(12, y.dtype), k_static, scene.effects))
+    z = z_of(nodes)
+    z_st = z_of(stages.reshape(-1, nodes.shape[1])).reshape(stages.shape[:2] + (12,))
+    history = rod_history.rest(co, z, z_st)
     sc = make_scales(scene.rod, co.c0)
     R_ref = _segment_rotations(layout, nodes)
     x = unknowns_from_nodes(layout, nodes, R_ref, sc)
@@ -118,6 +123,17 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
         jac=newton.Jacobian.empty(layout.size),
         has_jac=jnp.asarray(False),
     )
+
+
+def _static_stages(scene, static: StaticSolution):
+    """RK4 stage states (N, 3, 24) of the static solution, velocities zero (N, 0, 24) for Euler)."""
+    s = scene.solver
+    effects = dataclasses.replace(scene.effects, inertia=False)
+    k = coefficients(scene.rod, effects, jnp.zeros(()), scene.gravity)
+    ds = scene.rod.length / s.grid_nodes
+    hist = RodHistory.zeros(s.grid_nodes, s.integrator)
+    _, _, st = integrate(static.nodes[0], hist.nodes, k, effects, ds, s.integrator, stage_history=hist.stages, return_stages=True)
+    return jnp.concatenate([st, jnp.zeros(st.shape[:2] + (6,), st.dtype)], axis=2)
 
 
 def _segment_rotations(layout, nodes):
@@ -158,9 +174,10 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     # step), it is retried from the last step's solution with a fresh Jacobian.
     retry = (lambda z, _s: residual(z), jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
     x, jac, stats = newton.solve(residual, guess, state.jac, _colouring(layout), s.newton, ~state.has_jac, retry)
-    nodes, _ = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll)
-    z = jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects))(nodes, state.history)
-    history = bdf_alpha.next_history(co, z, state.z_prev, state.history)
+    nodes, _, stages = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, return_stages=True)
+    z = jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects))(nodes, state.history.nodes)
+    z_st = jax.vmap(jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects)))(stages, state.history.stages)
+    history = rod_history.advance(co, state.history, z, z_st, state.z_prev)
     # Unknowns of this step expressed relative to this step's reference rotations, so that the
     # next step's extrapolation compares like with like.
     R_new = _segment_rotations(layout, nodes)

@@ -131,11 +131,13 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
     return x, jac, Stats(iterations=jnp.asarray(it), residual=nrm, jacobians=jnp.asarray(nj), evaluations=jnp.asarray(ev))
 
 
-def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None):
+def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None, tangent_jac_fn=None):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
     ``jac_fn(f, x)`` gives the Jacobian of ``f`` at ``x`` (used both by the forward Newton and, on
-    the linearised function, for the tangent solve of the implicit function theorem).
+    the linearised function, for the tangent solve of the implicit function theorem, unless
+    ``tangent_jac_fn`` is given for the latter: a ``jac_fn`` that exploits the structure of one
+    particular residual cannot serve the linearised function).
 
     ``fallback``, if given, is ``(homotopy, s, starts, chain)``: stages tried in order only while
     the solve has not converged (traced once, run only if needed). Stage k solves
@@ -164,8 +166,10 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
         (x, jac, _, total), _ = jax.lax.scan(stage, (x, jac, done, stats), (svals, starts, chain))
         return x, (jac, total)
 
+    tjac = jac_fn if tangent_jac_fn is None else tangent_jac_fn
+
     def tangent_solve(g, y):
-        return jnp.linalg.solve(jac_fn(g, y), y)
+        return jnp.linalg.solve(tjac(g, y), y)
 
     # custom_root gives integer auxiliary outputs integer tangents, which JAX then rejects; the
     # integers (LU pivots, counters) therefore cross it as floats and are cast back here.

@@ -35,6 +35,7 @@ class Effects(eqx.Module):
     damping: bool = eqx.field(static=True, default=False)
     drag: bool = eqx.field(static=True, default=False)
     shear_extension: bool = eqx.field(static=True, default=True)
+    planar: bool = eqx.field(static=True, default=False)  # parallel robots: platform on a planar bearing
 
 
 class TauDamping(eqx.Module):

@@ -98,3 +98,22 @@ def rotation_vector(R):
     angle = 2.0 * jnp.arctan2(sn, q[0])
     scale = jnp.where(small, 2.0 / q[0], angle / safe_sn)  # 2 atan2(s, w)/s -> 2/w as s -> 0
     return scale * q[1:]
+
+
+def exp_map(a):
+    """Rotation $\\exp(\\hat a)$ by angle $|a|$ about $a$ (Rodrigues), smooth at $a = 0$."""
+    t2 = jnp.dot(a, a)
+    small = t2 < 1e-8
+    t2s = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2s)
+    s1 = jnp.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, jnp.sin(t) / t)
+    s2 = jnp.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - jnp.cos(t)) / t2s)
+    A = hat(a)
+    return jnp.eye(3, dtype=a.dtype) + s1 * A + s2 * matmul(A, A)
+
+
+def rotz(theta):
+    """Rotation by ``theta`` (rad) about the global z axis."""
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    z, o = jnp.zeros_like(theta), jnp.ones_like(theta)
+    return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])

@@ -54,6 +54,7 @@ class Solver(eqx.Module):
     segments: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
     refine: int = eqx.field(static=True, default=1)
+    continuation: int = eqx.field(static=True, default=10)  # stages of the parallel robots' initial static solve
     newton: NewtonSettings = NewtonSettings()
 
     @property
@@ -86,13 +87,21 @@ def _f(x):
 
 _SCHEMA = {
     "": {"name", "robot", "solver", "effects", "environment", "rod", "rods", "base", "tip"},
-    "solver": {"nodes", "integrator", "dt", "alpha", "duration", "tol", "max_iter", "segments", "unroll"},
+    "solver": {"nodes", "integrator", "dt", "alpha", "duration", "tol", "max_iter", "segments", "unroll", "continuation"},
     "effects": {"inertia", "gravity", "damping", "drag", "shear_extension", "planar"},
     "environment": {"gravity"},
     "rod": {"length", "radius", "youngs_modulus", "shear_modulus", "density", "tau", "bse", "bbt", "drag_coefficients", "precurvature"},
     "base": {"position", "direction", "normal"},
     "tip": {"force", "moment", "release_time"},
+    "geometry": {
+        "base_radius", "platform_radius", "base_angles", "platform_angles",  # stewart_gough
+        "actuator_radius", "gamma", "phi", "clamp_angles", "attachment",  # triskele
+    },
+    "platform": {"mass", "inertia", "position", "rotation_vector", "angle"},
+    "actuation": {"initial", "final", "kind", "start_time", "duration", "file"},
+    "load": {"force", "moment", "release_time", "step_time", "file"},
 }
+_PARALLEL_TOP = {"name", "robot", "solver", "effects", "environment", "rod", "rods", "geometry", "platform", "actuation", "load"}
 _REQUIRED_ROD = ("length", "radius", "youngs_modulus", "shear_modulus", "density")
 ROBOTS = ("rod", "stewart_gough", "triskele")
 
@@ -147,6 +156,23 @@ class _Reader:
             self.fail(where, f"must be >= 0, got {v}")
         return a
 
+    def numbers(self, table: dict, tname: str, key: str, length: int | None = None, default=None, *, required=False):
+        """A list of numbers (``length`` of them if given) as a float array."""
+        where = f"[{tname}] {key}"
+        if key not in table:
+            if required:
+                self.fail(where, "missing required key")
+            return default
+        v = table[key]
+        if not isinstance(v, list) or any(isinstance(a, bool) or not isinstance(a, (int, float)) for a in v):
+            self.fail(where, f"must be a list of numbers, got {v!r}")
+        if length is not None and len(v) != length:
+            self.fail(where, f"must have {length} entries (one per leg), got {len(v)}")
+        a = np.asarray(v, dtype=float)
+        if not np.all(np.isfinite(a)):
+            self.fail(where, f"must be finite, got {v}")
+        return a
+
     def flag(self, table: dict, tname: str, key: str, default: bool) -> bool:
         if key not in table:
             return default
@@ -169,70 +195,34 @@ def _frame(r: _Reader, direction, normal) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
+def scene_from_dict(data: dict, source: str = "<scene>"):
     """Build and validate a scene from parsed TOML (raises `SceneError` naming the cause)."""
     r = _Reader(data, source)
-    for key in data:
-        if key not in _SCHEMA[""]:
-            r.fail("top level", f"unknown key '{key}' (allowed: {', '.join(sorted(_SCHEMA['']))})")
     robot = data.get("robot", "rod")
     if robot not in ROBOTS:
         r.fail("robot", f"must be one of {', '.join(ROBOTS)}, got {robot!r}")
-    if robot != "rod":
-        r.fail("robot", f"'{robot}' scenes are not available in this version (only 'rod')")
+    allowed = _SCHEMA[""] if robot == "rod" else _PARALLEL_TOP
+    for key in data:
+        if key not in allowed:
+            r.fail("top level", f"unknown key '{key}' for robot '{robot}' (allowed: {', '.join(sorted(allowed))})")
     name = data.get("name", Path(source).stem)
     if not isinstance(name, str):
         r.fail("name", "must be a string")
+    if robot != "rod":
+        from .scene_parallel import parallel_scene
+
+        return parallel_scene(r, robot, name)
     if "rods" in data:
         r.fail("[[rods]]", "per-rod overrides apply to parallel robots; a 'rod' scene has one [rod]")
-
-    sv = r.table("solver")
     ef = r.table("effects")
-    env = r.table("environment")
-    rd = r.table("rod")
-    bs = r.table("base")
-    tp = r.table("tip")
-    if "rod" not in data:
-        r.fail("[rod]", "missing required table")
-
     if "planar" in ef:
         r.fail("[effects] planar", "applies to parallel robots only")
-    effects = Effects(
-        inertia=r.flag(ef, "effects", "inertia", True),
-        gravity=r.flag(ef, "effects", "gravity", False),
-        damping=r.flag(ef, "effects", "damping", False),
-        drag=r.flag(ef, "effects", "drag", False),
-        shear_extension=r.flag(ef, "effects", "shear_extension", True),
-    )
-
-    vals = {k: r.number(rd, "rod", k, required=True, positive=True) for k in _REQUIRED_ROD}
-    tau = r.number(rd, "rod", "tau", None, nonneg=True)
-    bse = r.vector(rd, "rod", "bse", nonneg=True)
-    bbt = r.vector(rd, "rod", "bbt", nonneg=True)
-    if (bse is None) != (bbt is None):
-        r.fail("[rod] bse/bbt", "give both bse and bbt (or tau)")
-    if tau is not None and bse is not None:
-        r.fail("[rod] tau", "give either tau or bse/bbt, not both")
-    damping = None
-    if bse is not None:
-        damping = DiagonalDamping(bse=_f(bse), bbt=_f(bbt))
-    elif tau is not None:
-        damping = TauDamping(tau=_f(tau))
-    if effects.damping and damping is None:
-        damping = TauDamping(tau=_f(0.0))
-    drag = r.vector(rd, "rod", "drag_coefficients", np.zeros(3), nonneg=True)
-    ustar = r.vector(rd, "rod", "precurvature")
-    rod = Rod(
-        length=_f(vals["length"]),
-        radius=_f(vals["radius"]),
-        youngs_modulus=_f(vals["youngs_modulus"]),
-        shear_modulus=_f(vals["shear_modulus"]),
-        density=_f(vals["density"]),
-        damping=damping if effects.damping else None,
-        drag=_f(drag) if effects.drag else None,
-        precurvature=None if ustar is None else _f(ustar),
-    )
-
+    effects = read_effects(r, planar=False)
+    if "rod" not in data:
+        r.fail("[rod]", "missing required table")
+    rod = read_rod(r, r.table("rod"), "rod", effects)
+    bs = r.table("base")
+    tp = r.table("tip")
     R0 = _frame(r, r.vector(bs, "base", "direction", np.array([1.0, 0, 0])), r.vector(bs, "base", "normal", np.array([0, 0, 1.0])))
     base = Base(position=_f(r.vector(bs, "base", "position", np.zeros(3))), rotation=_f(R0))
     tip = TipLoad(
@@ -240,8 +230,74 @@ def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
         moment=_f(r.vector(tp, "tip", "moment", np.zeros(3))),
         release_time=_f(r.number(tp, "tip", "release_time", 0.0)),
     )
-    gravity = _f(r.vector(env, "environment", "gravity", np.array([0.0, 0.0, -9.81])))
+    gravity = read_gravity(r)
+    solver = make_solver(rod, **read_solver(r))
+    return Scene(rod=rod, base=base, tip=tip, gravity=gravity, effects=effects, solver=solver, name=name, robot=robot)
 
+
+def read_effects(r: _Reader, planar: bool) -> Effects:
+    ef = r.table("effects")
+    return Effects(
+        inertia=r.flag(ef, "effects", "inertia", True),
+        gravity=r.flag(ef, "effects", "gravity", False),
+        damping=r.flag(ef, "effects", "damping", False),
+        drag=r.flag(ef, "effects", "drag", False),
+        shear_extension=r.flag(ef, "effects", "shear_extension", True),
+        planar=r.flag(ef, "effects", "planar", planar),
+    )
+
+
+def read_gravity(r: _Reader):
+    return _f(r.vector(r.table("environment"), "environment", "gravity", np.array([0.0, 0.0, -9.81])))
+
+
+def rod_values(r: _Reader, rd: dict, tname: str, base: dict | None = None) -> dict:
+    """Validated numbers of a [rod] table (or a [[rods]] entry overriding ``base``)."""
+    base = base or {}
+    vals = {k: r.number(rd, tname, k, base.get(k), required=k not in base, positive=True) for k in _REQUIRED_ROD}
+    tau = r.number(rd, tname, "tau", None, nonneg=True)
+    bse = r.vector(rd, tname, "bse", nonneg=True)
+    bbt = r.vector(rd, tname, "bbt", nonneg=True)
+    if (bse is None) != (bbt is None):
+        r.fail(f"[{tname}] bse/bbt", "give both bse and bbt (or tau)")
+    if tau is not None and bse is not None:
+        r.fail(f"[{tname}] tau", "give either tau or bse/bbt, not both")
+    if tau is None and bse is None:
+        tau, bse, bbt = base.get("tau"), base.get("bse"), base.get("bbt")
+    vals.update(tau=tau, bse=bse, bbt=bbt)
+    vals["drag_coefficients"] = r.vector(rd, tname, "drag_coefficients", base.get("drag_coefficients", np.zeros(3)), nonneg=True)
+    vals["precurvature"] = r.vector(rd, tname, "precurvature", base.get("precurvature"))
+    return vals
+
+
+def make_rod(vals: dict, effects: Effects) -> Rod:
+    damping = None
+    if vals["bse"] is not None:
+        damping = DiagonalDamping(bse=_f(vals["bse"]), bbt=_f(vals["bbt"]))
+    elif vals["tau"] is not None:
+        damping = TauDamping(tau=_f(vals["tau"]))
+    if effects.damping and damping is None:
+        damping = TauDamping(tau=_f(0.0))
+    ustar = vals["precurvature"]
+    return Rod(
+        length=_f(vals["length"]),
+        radius=_f(vals["radius"]),
+        youngs_modulus=_f(vals["youngs_modulus"]),
+        shear_modulus=_f(vals["shear_modulus"]),
+        density=_f(vals["density"]),
+        damping=damping if effects.damping else None,
+        drag=_f(vals["drag_coefficients"]) if effects.drag else None,
+        precurvature=None if ustar is None else _f(ustar),
+    )
+
+
+def read_rod(r: _Reader, rd: dict, tname: str, effects: Effects) -> Rod:
+    return make_rod(rod_values(r, rd, tname), effects)
+
+
+def read_solver(r: _Reader) -> dict:
+    """Solver settings as keyword arguments of `make_solver` (validated)."""
+    sv = r.table("solver")
     nodes = sv.get("nodes", 50)
     if isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1:
         r.fail("[solver] nodes", f"must be a positive integer, got {nodes!r}")
@@ -254,28 +310,35 @@ def scene_from_dict(data: dict, source: str = "<scene>") -> Scene:
         r.fail("[solver] alpha", f"must lie in [-0.5, 0] (-0.5 trapezoidal, 0 BDF2), got {alpha}")
     duration = r.number(sv, "solver", "duration", 1.0, nonneg=True)
     tol = r.number(sv, "solver", "tol", 1e-10, positive=True)
-    max_iter = sv.get("max_iter", 50)
-    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
-        r.fail("[solver] max_iter", f"must be a positive integer, got {max_iter!r}")
+    out = dict(nodes=nodes, integrator=integrator, dt=dt, alpha=alpha, duration=duration, tol=tol)
+    for key, default in (("max_iter", 50), ("continuation", 10)):
+        v = sv.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            r.fail(f"[solver] {key}", f"must be a positive integer, got {v!r}")
+        out[key] = v
     segments = sv.get("segments", "auto")
     if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):
         r.fail("[solver] segments", f"must be \"auto\" or an integer in [1, nodes], got {segments!r}")
     unroll = sv.get("unroll", None)
     if unroll is not None and (isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 1):
         r.fail("[solver] unroll", f"must be a positive integer, got {unroll!r}")
+    out.update(segments=segments, unroll=unroll)
+    return out
 
-    solver = make_solver(rod, nodes, integrator, dt, alpha, duration, tol, max_iter, segments, unroll)
-    return Scene(rod=rod, base=base, tip=tip, gravity=gravity, effects=effects, solver=solver, name=name, robot=robot)
 
+def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max_iter=50, segments="auto", unroll=None, continuation=10) -> Solver:
+    """Solver settings; ``segments="auto"`` picks the multiple-shooting split from dt and alpha.
 
-def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max_iter=50, segments="auto", unroll=None) -> Solver:
-    """Solver settings; ``segments="auto"`` picks the multiple-shooting split from dt and alpha."""
+    ``rod`` may hold several legs (leaves with a leading axis): the most demanding leg decides.
+    """
     c0 = float(bdf_alpha.coefficients(dt, alpha).c0)
-    lam = boundary_layer_rate(float(rod.radius), float(rod.youngs_modulus), float(rod.shear_modulus), float(rod.density), c0)
+    radius, E, G, rho, length = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (rod.radius, rod.youngs_modulus, rod.shear_modulus, rod.density, rod.length))
+    lam = max(boundary_layer_rate(*vals, c0) for vals in zip(radius, E, G, rho))
+    L = float(length.max())
     # Node spacing longer than the boundary layer: integrate on a finer internal grid (spatial.py).
-    refine = refinement(lam * float(rod.length) / nodes)
+    refine = refinement(lam * L / nodes)
     if segments == "auto":
-        segments = auto_segments(nodes * refine, float(rod.length), lam)
+        segments = auto_segments(nodes * refine, L, lam)
     elif refine > 1:
         segments = segments * refine if segments > 1 else segments
     if unroll is None:
@@ -290,6 +353,7 @@ def make_solver(rod: Rod, nodes, integrator, dt, alpha, duration, tol=1e-10, max
         unroll=int(unroll),
         refine=int(refine),
         newton=NewtonSettings(tol=float(tol), max_iter=int(max_iter)),
+        continuation=int(continuation),
     )
 
 
@@ -313,6 +377,7 @@ def with_solver(scene: Scene, **changes) -> Scene:
         max_iter=s.newton.max_iter,
         segments="auto",
         unroll=None if "nodes" in changes else s.unroll,
+        continuation=s.continuation,
     )
     unknown = set(changes) - set(cur)
     if unknown:
@@ -322,7 +387,8 @@ def with_solver(scene: Scene, **changes) -> Scene:
         raise SceneError(f"alpha must lie in [-0.5, 0], got {cur['alpha']}")
     if cur["dt"] <= 0:
         raise SceneError(f"dt must be > 0, got {cur['dt']}")
-    return dataclasses.replace(scene, solver=make_solver(scene.rod, **cur))
+    rod = scene.rod if hasattr(scene, "rod") else scene.legs.rod
+    return dataclasses.replace(scene, solver=make_solver(rod, **cur))
 
 
 def load_scene(path) -> Scene:

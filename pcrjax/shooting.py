@@ -132,18 +132,22 @@ def junction_residuals(layout: Layout, arrivals, restarts, sc: Scales):
     return jax.vmap(one)(arrivals, restarts).reshape(-1)
 
 
-def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1):
-    """Integrate the rod for unknowns ``x``; returns (nodes, junction residuals).
+def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1, return_stages=False):
+    """Integrate the rod for unknowns ``x``; returns (nodes, junction residuals[, stage states]).
 
     ``base_state`` is the state at s = 0 with zero wrench; x[0:6] sets the scaled base wrench.
+    ``history`` is a `RodHistory` (nodes and RK4 stage points).
     """
     y0 = base_state.at[12:15].set(x[0:3] * sc.force).at[15:18].set(x[3:6] * sc.moment)
+    kw = dict(unroll=unroll, stage_history=history.stages, return_stages=return_stages)
     if layout.segments == 1:
-        nodes, _ = integrate(y0, history, k, effects, ds, integrator, unroll=unroll)
-        return nodes, jnp.zeros((0,), x.dtype)
-    restarts = restart_states(layout, x, R_ref, sc)
-    nodes, arrivals = integrate(y0, history, k, effects, ds, integrator, layout.starts, restarts, unroll=unroll)
-    return nodes, junction_residuals(layout, arrivals, restarts, sc)
+        out = integrate(y0, history.nodes, k, effects, ds, integrator, **kw)
+        junctions = jnp.zeros((0,), x.dtype)
+    else:
+        restarts = restart_states(layout, x, R_ref, sc)
+        out = integrate(y0, history.nodes, k, effects, ds, integrator, layout.starts, restarts, **kw)
+        junctions = junction_residuals(layout, out[1], restarts, sc)
+    return (out[0], junctions) + ((out[2],) if return_stages else ())
 
 
 def unknowns_from_nodes(layout: Layout, nodes, R_ref, sc: Scales):

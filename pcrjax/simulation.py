@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import cantilever
+from . import cantilever, parallel
+from .robot import ParallelScene
 from .rotations import rotation_vector
 from .scene import Scene, SceneError
 
@@ -31,8 +32,9 @@ class ConvergenceError(RuntimeError):
 
 
 class StaticResult(eqx.Module):
-    """Static equilibrium: tip ``position`` (3,) m, ``rotation_vector`` (3,) rad, ``base_wrenches``
-    (1, 2, 3) [n(0), m(0)] in N and N m, node ``positions`` (N+1, 3), and the solve's stats."""
+    """Static equilibrium: tip or platform ``position`` (3,) m, ``rotation_vector`` (3,) rad,
+    ``base_wrenches`` (rods, 2, 3) [n(0), m(0)] in N and N m, node ``positions`` ((N+1, 3) for a
+    rod, (legs, N+1, 3) for a parallel robot), and the solve's stats."""
 
     position: jnp.ndarray
     rotation_vector: jnp.ndarray
@@ -49,14 +51,18 @@ class StaticResult(eqx.Module):
 
 
 class Trajectory(eqx.Module):
-    """Time series: ``t`` (T,), tip ``position`` (T, 3), ``rotation_vector`` (T, 3), node
-    ``positions`` (T, N+1, 3); per step (T-1,): Newton ``iterations``, final scaled ``residual``,
-    ``jacobians`` evaluated. Row 0 is the initial static equilibrium."""
+    """Time series: ``t`` (T,), tip or platform ``position`` (T, 3), ``rotation_vector`` (T, 3),
+    node ``positions`` ((T, N+1, 3), or (T, legs, N+1, 3)), ``actuators`` (T, legs) (zero columns
+    for a rod), total ``energy`` (T,) J of rods and platform (parallel robots; NaN for a rod); per
+    step (T-1,): Newton ``iterations``, final scaled ``residual``, ``jacobians`` evaluated. Row 0
+    is the initial static equilibrium."""
 
     t: jnp.ndarray
     position: jnp.ndarray
     rotation_vector: jnp.ndarray
     positions: jnp.ndarray
+    actuators: jnp.ndarray
+    energy: jnp.ndarray
     iterations: jnp.ndarray
     residual: jnp.ndarray
     jacobians: jnp.ndarray
@@ -71,12 +77,24 @@ def _is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
-def _check_rod(scene: Scene):
-    if scene.robot != "rod":
-        raise SceneError(f"robot '{scene.robot}' is not available in this version")
+def _is_parallel(scene) -> bool:
+    return isinstance(scene, ParallelScene)
 
 
-def static_result(scene: Scene, sol: cantilever.StaticSolution) -> StaticResult:
+def static_result(scene, sol) -> StaticResult:
+    if _is_parallel(scene):
+        nodes = sol.nodes
+        R = sol.rotation
+        return StaticResult(
+            position=sol.position,
+            rotation_vector=rotation_vector(R),
+            rotation=R,
+            base_wrenches=jnp.stack([nodes[:, 0, 12:15], nodes[:, 0, 15:18]], axis=1),
+            positions=nodes[:, :: scene.solver.refine, 0:3],
+            residual_norm=sol.stats.residual,
+            newton_iterations=sol.stats.iterations,
+            tol=scene.solver.newton.tol,
+        )
     nodes = sol.nodes
     R = nodes[-1, 3:12].reshape(3, 3)
     return StaticResult(
@@ -91,15 +109,18 @@ def static_result(scene: Scene, sol: cantilever.StaticSolution) -> StaticResult:
     )
 
 
+def _model(scene):
+    return parallel if _is_parallel(scene) else cantilever
+
+
 @eqx.filter_jit
-def _static(scene: Scene):
-    return static_result(scene, cantilever.solve_static(scene))
+def _static(scene):
+    return static_result(scene, _model(scene).solve_static(scene))
 
 
-def solve_static(scene: Scene, *, throw: bool = True) -> StaticResult:
-    """Static equilibrium under the initial loads (t = 0). Raises `ConvergenceError` if the solve
-    fails (when called outside a trace and ``throw``)."""
-    _check_rod(scene)
+def solve_static(scene, *, throw: bool = True) -> StaticResult:
+    """Static equilibrium under the initial loads and actuator values (t = 0). Raises
+    `ConvergenceError` if the solve fails (when called outside a trace and ``throw``)."""
     res = _static(scene)
     if throw and not _is_traced(res.residual_norm) and not bool(res.converged):
         raise ConvergenceError(
@@ -110,30 +131,48 @@ def solve_static(scene: Scene, *, throw: bool = True) -> StaticResult:
     return res
 
 
-def _initial(scene: Scene):
-    static = cantilever.solve_static(scene)  # load at t = 0: on iff release_time >= 0
-    return static, cantilever.initial_step_state(scene, static)
+def _initial(scene):
+    m = _model(scene)
+    static = m.solve_static(scene)  # loads and actuators at t = 0
+    return static, m.initial_step_state(scene, static)
 
 
-def _scan_steps(scene: Scene, state, i0, count: int):
+def _scan_steps(scene, state, i0, count: int):
+    par = _is_parallel(scene)
+
     def body(st, i):
         t = (i0 + i + 1) * scene.solver.dt
+        if par:
+            st, out = parallel.step(scene, st, t)
+            return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy)
         st, out = cantilever.step(scene, st, t)
-        return st, (out.tip_position, rotation_vector(out.tip_rotation), out.positions, out.stats)
+        nan = jnp.full((), jnp.nan)
+        return st, (out.tip_position, rotation_vector(out.tip_rotation), out.positions, out.stats, jnp.zeros(0), nan)
 
     return jax.lax.scan(body, state, jnp.arange(count))
 
 
-def _assemble(scene, static, outs, steps):
-    pos, rv, shapes, stats = outs
-    s0 = static.nodes
-    R0 = s0[-1, 3:12].reshape(3, 3)
+def _assemble(scene, static, state0, outs, steps):
+    pos, rv, shapes, stats, act, energy = outs
+    if _is_parallel(scene):
+        p0, R0 = static.position, static.rotation
+        shape0 = static.nodes[:, :: scene.solver.refine, 0:3]
+        act0 = scene.actuation(jnp.zeros(()))
+        e0 = parallel.rest_energy(scene, state0)
+    else:
+        s0 = static.nodes
+        p0, R0 = s0[-1, 0:3], s0[-1, 3:12].reshape(3, 3)
+        shape0 = s0[:: scene.solver.refine, 0:3]
+        act0 = jnp.zeros(0)
+        e0 = jnp.full((), jnp.nan)
     t = jnp.arange(steps + 1) * scene.solver.dt
     return Trajectory(
         t=t,
-        position=jnp.concatenate([s0[-1:, 0:3], pos[:steps]]),
+        position=jnp.concatenate([p0[None], pos[:steps]]),
         rotation_vector=jnp.concatenate([rotation_vector(R0)[None], rv[:steps]]),
-        positions=jnp.concatenate([s0[None, :: scene.solver.refine, 0:3], shapes[:steps]]),
+        positions=jnp.concatenate([shape0[None], shapes[:steps]]),
+        actuators=jnp.concatenate([act0[None], act[:steps]]),
+        energy=jnp.concatenate([e0[None], energy[:steps]]),
         iterations=stats.iterations[:steps],
         residual=stats.residual[:steps],
         jacobians=stats.jacobians[:steps],
@@ -141,18 +180,17 @@ def _assemble(scene, static, outs, steps):
     )
 
 
-def rollout(scene: Scene) -> Trajectory:
+def rollout(scene) -> Trajectory:
     """Simulate ``scene.solver.steps`` steps from rest at the static equilibrium; pure function.
 
     No convergence check is raised here (it cannot be, under `jit`/`grad`): inspect
     ``.converged`` or use `simulate`.
     """
-    _check_rod(scene)
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use solve_static")
     static, state = _initial(scene)
     _, outs = _scan_steps(scene, state, 0, scene.solver.steps)
-    return _assemble(scene, static, outs, scene.solver.steps)
+    return _assemble(scene, static, state, outs, scene.solver.steps)
 
 
 @eqx.filter_jit
@@ -163,6 +201,11 @@ def _start(scene):
 @eqx.filter_jit
 def _advance(scene, state, i0, count: int):
     return _scan_steps(scene, state, i0, count)
+
+
+@eqx.filter_jit
+def _finish(scene, static, state0, outs, steps: int):
+    return _assemble(scene, static, state0, outs, steps)
 
 
 def _raise_first_failure(scene, residual, tol, offset=0):
@@ -196,8 +239,7 @@ def simulate(
 
     When a step fails, the steps up to it are kept in the exception's ``partial`` attribute.
     """
-    _check_rod(scene)
-    if _is_traced(scene.solver.dt) or _is_traced(scene.rod.length):
+    if any(_is_traced(leaf) for leaf in jax.tree.leaves(scene)):
         return rollout(scene)
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use `pcrjax static`")
@@ -206,6 +248,7 @@ def simulate(
     n_chunks = -(-steps // chunk)
     t_c0 = time.perf_counter()
     static, state = _start(scene)
+    state0 = state
     jax.block_until_ready(state)
     static_res = np.asarray(static.stats.residual)
     if not static_res <= scene.solver.newton.tol:
@@ -242,7 +285,7 @@ def simulate(
         bar.close()
     outs = jax.tree.map(lambda *a: jnp.concatenate(a), *outs_all)
     n_done = min(len(outs_all) * chunk, steps)
-    traj = _assemble(scene, static, outs, n_done)
+    traj = _finish(scene, static, state0, outs, n_done)
     if timings is not None:
         timings.update(compile_s=compile_s, run_s=run_s, steps=n_done)
     if failure is not None:

@@ -37,7 +37,14 @@ def midpoints(history):
     return jnp.concatenate([first[None], inner, last[None]])
 
 
-def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1):
+def stage_histories(history):
+    """Histories at RK4's stage points 2, 3, 4 of each interval, (N, 3, 12), interpolated from
+    the node histories (used in statics, where they are zero, and by callers without stage data)."""
+    hm = midpoints(history)
+    return jnp.stack([hm, hm, history[1:]], axis=1)
+
+
+def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1, stage_history=None, return_stages=False):
     r"""Integrate from node 0 to node N.
 
     **Arguments:**
@@ -48,25 +55,33 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
     - ``integrator``: "rk4" or "euler" (static).
     - ``segment_starts``: static tuple of node indices (>0) where a new segment starts.
     - ``restarts``: (len(segment_starts), dim) start states of those segments.
+    - ``stage_history``: (N, 3, 12) histories at RK4 stages 2, 3, 4 of each interval (see
+      `rod_history.py`); interpolated from ``history`` when None.
+    - ``return_stages``: also return the (N, 3, dim) states at which stages 2, 3, 4 were evaluated.
 
-    **Returns:** ``(nodes, arrivals)``: the state at all N+1 nodes (after restarts) and the
-    states arriving at each segment start before the restart (or None).
+    **Returns:** ``(nodes, arrivals)`` (and ``stages`` if asked): the state at all N+1 nodes (after
+    restarts) and the states arriving at each segment start before the restart (or None).
     """
     n_steps = history.shape[0] - 1
     f = lambda y, h: rhs(y, h, k, effects)  # noqa: E731
 
-    def step(y, h0, h1, hm):
+    def step(y, h0, hs):
         if integrator == "euler":
-            return y + ds * f(y, h0)
+            return y + ds * f(y, h0), None
         k1 = f(y, h0)
-        k2 = f(y + 0.5 * ds * k1, hm)
-        k3 = f(y + 0.5 * ds * k2, hm)
-        k4 = f(y + ds * k3, h1)
-        return y + (ds / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        y2 = y + 0.5 * ds * k1
+        k2 = f(y2, hs[0])
+        y3 = y + 0.5 * ds * k2
+        k3 = f(y3, hs[1])
+        y4 = y + ds * k3
+        k4 = f(y4, hs[2])
+        return y + (ds / 6.0) * (k1 + 2.0 * (k2 + k3) + k4), jnp.stack([y2, y3, y4])
 
-    # Euler never evaluates at half steps; RK4 gets the cubically interpolated history there.
-    hm = midpoints(history) if integrator == "rk4" else history[:-1]
-    xs = (history[:-1], history[1:], hm)
+    if integrator == "rk4":
+        hs = stage_histories(history) if stage_history is None else stage_history
+    else:  # Euler never evaluates between nodes
+        hs = jnp.zeros((n_steps, 0, history.shape[1]), history.dtype)
+    xs = (history[:-1], hs)
     if segment_starts:
         flags = np.zeros(n_steps + 1, dtype=bool)
         flags[list(segment_starts)] = True
@@ -74,12 +89,18 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
         xs = xs + (jnp.asarray(flags[:-1]), replace[:-1])
 
     def body(y, x):
-        y_in = jnp.where(x[3], x[4], y) if segment_starts else y
-        return step(y_in, *x[:3]), (y_in, y)
+        y_in = jnp.where(x[2], x[3], y) if segment_starts else y
+        y_next, stages = step(y_in, x[0], x[1])
+        out = (y_in, y) + ((stages,) if return_stages and stages is not None else ())
+        return y_next, out
 
-    y_last, (ys_in, ys_arrived) = jax.lax.scan(body, y0, xs, unroll=unroll)
+    y_last, outs = jax.lax.scan(body, y0, xs, unroll=unroll)
+    ys_in, ys_arrived = outs[0], outs[1]
     nodes = jnp.concatenate([ys_in, y_last[None]])
     arrivals = ys_arrived[np.asarray(segment_starts)] if segment_starts else None
+    if return_stages:
+        stages = outs[2] if integrator == "rk4" else jnp.zeros((n_steps, 0, y0.shape[0]), y0.dtype)
+        return nodes, arrivals, stages
     return nodes, arrivals
 
 

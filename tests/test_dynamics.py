@@ -22,7 +22,6 @@ def _tip_z(scene):
 def test_first_frequency_matches_euler_bernoulli():
     assert abs(F1 - 8.895) < 1e-3
     dt = 0.05 / W1  # trapezoidal period error (h^2/12) ~ 2e-4 relative
-    # N = 40: the history interpolation error at RK4 half steps is O(c0 ds^4) (see spatial.py).
     t, z = _tip_z(rod_scene(force=(0, 0, -1e-3), nodes=40, dt=dt, alpha=-0.5, duration=1.2))
     (w1, _), (w2, _) = fit_sinusoids(t, z, [W1, 6.27 * W1])[0]
     f = w1 / (2 * math.pi)
@@ -58,17 +57,12 @@ def _rest_drift(integrator, nodes):
     return np.abs(np.asarray(tr.position) - np.asarray(tr.position)[0]).max()
 
 
-def test_equilibrium_stays_put_when_load_is_held_euler():
-    assert _rest_drift("euler", 20) < 1e-12
-
-
-def test_rk4_rest_drift_is_a_fourth_order_discretisation_error():
-    # RK4 evaluates the history at half steps by interpolation (spatial.py); at rest that gives
-    # an O(c0 ds^4) offset, which must vanish at RK4's order as N grows.
-    d = np.array([_rest_drift("rk4", n) for n in (10, 20, 40)])
-    orders = np.log2(d[:-1] / d[1:])
-    assert np.all((orders > 3.5) & (orders < 4.5)), (d, orders)
-    assert d[-1] < 1e-7
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_equilibrium_stays_put_when_load_is_held(integrator):
+    # RK4 keeps the previous step's values at its stage points (rod_history.py), so a rod at
+    # rest has z_t = 0 at every evaluation point and nothing moves; interpolating the whole
+    # history there (thesis eq. 3.39) drifted by 1.4e-5 m at N = 10.
+    assert _rest_drift(integrator, 10) < 1e-12
 
 
 def test_kelvin_voigt_damping_matches_modal_damping_ratio():
