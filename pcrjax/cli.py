@@ -78,8 +78,14 @@ def cmd_simulate(args) -> int:
             newton_iterations=it.tolist(),
             residuals=np.asarray(traj.residual).tolist(),
         )
-        outputs.write_trajectory(out / "trajectory.csv", traj)
-        if len(traj.t) > 1:
+        parallel = hasattr(scene, "legs")
+        outputs.write_trajectory(out / "trajectory.csv", traj, np.asarray(traj.actuators) if parallel else None)
+        if parallel:
+            summary["energy_j"] = {"initial": float(traj.energy[0]), "final": float(traj.energy[-1])}
+        if len(traj.t) > 1 and parallel:
+            outputs.plot_platform(out / "platform_path.png", traj, scene.name)
+            outputs.plot_legs(out / "legs.png", traj, scene.name)
+        elif len(traj.t) > 1:
             outputs.plot_tip(out / "tip_path.png", traj, scene.name)
             outputs.plot_shapes(out / "rod_shapes.png", traj, scene.name)
     if failure is not None:
@@ -112,7 +118,9 @@ def cmd_inverse(args) -> int:
     from .scene import SceneError, load_scene
 
     scene = load_scene(args.scene)
-    raise SceneError(f"{args.scene}: inverse dynamics needs a parallel robot; robot '{scene.robot}' has no actuators")
+    if scene.robot == "rod":
+        raise SceneError(f"{args.scene}: inverse dynamics needs a parallel robot; robot '{scene.robot}' has no actuators")
+    raise SceneError(f"{args.scene}: inverse dynamics is not available in this version (forward dynamics and statics are: `pcrjax simulate`, `pcrjax static`)")
 
 
 def _add_solver_overrides(p):

@@ -33,11 +33,21 @@ def write_json(path: Path, obj):
     _atomic_write(path, json.dumps(obj, indent=2) + "\n")
 
 
+def _rod_dict(rod) -> dict:
+    f = lambda a: np.asarray(a).tolist()  # noqa: E731  (scalars, or one value per leg)
+    return {
+        "length_m": f(rod.length),
+        "radius_m": f(rod.radius),
+        "youngs_modulus_pa": f(rod.youngs_modulus),
+        "shear_modulus_pa": f(rod.shear_modulus),
+        "density_kg_m3": f(rod.density),
+    }
+
+
 def scene_settings(scene) -> dict:
     s = scene.solver
-    rod = scene.rod
     e = scene.effects
-    return {
+    out = {
         "name": scene.name,
         "robot": scene.robot,
         "nodes": s.nodes,
@@ -50,14 +60,17 @@ def scene_settings(scene) -> dict:
         "shooting_segments": s.segments,
         "internal_nodes": s.grid_nodes,
         "effects": {k: getattr(e, k) for k in ("inertia", "gravity", "damping", "drag", "shear_extension")},
-        "rod": {
-            "length_m": float(rod.length),
-            "radius_m": float(rod.radius),
-            "youngs_modulus_pa": float(rod.youngs_modulus),
-            "shear_modulus_pa": float(rod.shear_modulus),
-            "density_kg_m3": float(rod.density),
-        },
     }
+    if hasattr(scene, "legs"):
+        out["effects"]["planar"] = e.planar
+        out["rods"] = _rod_dict(scene.legs.rod)
+        out["legs"] = scene.legs.count
+        out["actuation_kind"] = scene.legs.kind
+        out["platform"] = {"mass_kg": float(scene.platform.mass), "inertia_kg_m2": np.asarray(scene.platform.inertia).tolist()}
+        out["static_continuation_stages"] = s.continuation
+    else:
+        out["rod"] = _rod_dict(scene.rod)
+    return out
 
 
 def plot_tip(path: Path, traj, title: str):
@@ -115,6 +128,71 @@ def plot_shapes(path: Path, traj, title: str, count: int = 12):
     sm = cm.ScalarMappable(cmap="viridis", norm=matplotlib.colors.Normalize(t[0], t[-1]))
     fig.colorbar(sm, ax=ax, label="t [s]")
     ax.set_title(f"{title}: rod shapes over time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_platform(path: Path, traj, title: str):
+    """Platform position and rotation over time, and its path in the x-y plane."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(traj.t)
+    p = np.asarray(traj.position)
+    rv = np.asarray(traj.rotation_vector)
+    d = (p - p[0]) * 1e6
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    for i, lab in enumerate("xyz"):
+        ax[0].plot(t, d[:, i], label=f"{lab} − {lab}(0)")
+    ax[0].set_xlabel("t [s]")
+    ax[0].set_ylabel("platform displacement [µm]")
+    ax[0].legend()
+    ax[0].grid(alpha=0.3)
+    for i, lab in enumerate("xyz"):
+        ax[1].plot(t, (rv[:, i] - rv[0, i]) * 1e6, label=f"r{lab} − r{lab}(0)")
+    ax[1].set_xlabel("t [s]")
+    ax[1].set_ylabel("rotation vector change [µrad]")
+    ax[1].legend()
+    ax[1].grid(alpha=0.3)
+    sc = ax[2].scatter(d[:, 0], d[:, 1], c=t, s=4, cmap="viridis")
+    ax[2].plot(d[:, 0], d[:, 1], lw=0.5, color="0.6")
+    ax[2].set_xlabel("x − x(0) [µm]")
+    ax[2].set_ylabel("y − y(0) [µm]")
+    ax[2].set_aspect("equal", adjustable="datalim")
+    ax[2].set_title("platform path")
+    fig.colorbar(sc, ax=ax[2], label="t [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_legs(path: Path, traj, title: str):
+    """Leg shapes at the first and last time: top view (x-y) and side view (x-z)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    P = np.asarray(traj.positions)  # (T, legs, nodes, 3)
+    fig, ax = plt.subplots(1, 2, figsize=(12, 5))
+    for k, (style, lab) in enumerate(((":", "t = 0"), ("-", f"t = {float(np.asarray(traj.t)[-1]):.3g} s"))):
+        frame = P[0] if k == 0 else P[-1]
+        for i, leg in enumerate(frame):
+            for a, (u, v) in zip(ax, ((0, 1), (0, 2))):
+                a.plot(leg[:, u] * 1e3, leg[:, v] * 1e3, style, color=f"C{i}", lw=1.4, label=f"leg {i + 1}, {lab}" if a is ax[0] else None)
+    for a, (u, v) in zip(ax, (("x", "y"), ("x", "z"))):
+        a.set_xlabel(f"{u} [mm]")
+        a.set_ylabel(f"{v} [mm]")
+        a.set_aspect("equal", adjustable="datalim")
+        a.grid(alpha=0.3)
+    ax[0].set_title("top view")
+    ax[1].set_title("side view")
+    ax[0].legend(fontsize=7, ncol=2)
+    fig.suptitle(f"{title}: legs")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

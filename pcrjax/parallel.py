@@ -139,14 +139,13 @@ class _Problem:
         return platform.pose(xp, self.scene.effects.planar, self.cfg.p_prev, self.cfg.R_prev, self.sc.length)
 
     def rates(self, xp):
-        _, _, theta = self.pose(xp)
-        p = self.pose(xp)[0]
-        return platform.rates(self.cfg.co, self.cfg.motion, p, theta)
+        _, _, dp, theta = self.pose(xp)
+        return platform.rates(self.cfg.co, self.cfg.motion, dp, theta)
 
     def algebraic(self, xp, tips):
         """[balance (P), tip constraints (6 per leg)] from the pose unknowns and the leg tips."""
         c, sc = self.cfg, self.sc
-        p, R, _ = self.pose(xp)
+        p, R, _, _ = self.pose(xp)
         r = self.rates(xp) if self.inertia else None
         force, moment = platform.balance(self.scene.platform, R, c.attachment, tips[:, 12:15], tips[:, 15:18], c.F, c.M, c.weight, r)
         bal = jnp.concatenate([force / sc.force, moment / sc.moment])
@@ -261,9 +260,7 @@ def solve_static(scene, t=0.0) -> StaticSolution:
 
     prob1 = problem(jnp.asarray(1.0))
     sc = prob1.sc
-    p_ref = scene.reference_position
-    xp0 = jnp.stack([p_ref[0] / sc.length, p_ref[1] / sc.length, 0.0]) if scene.effects.planar else jnp.concatenate([p_ref / sc.length, jnp.zeros(3)])
-    x0 = jax.lax.stop_gradient(jnp.concatenate([xp0, jnp.zeros(n * layout.size)]))
+    x0 = jax.lax.stop_gradient(jnp.zeros(pose_size(scene) + n * layout.size))  # reference pose, zero wrenches
 
     def stage(carry, lam):
         x, jac, total = carry
@@ -281,7 +278,7 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     stats = newton._add(cont, stats)
     xp, xl = prob1.split(x)
     _, _, nodes = prob1.legs(xl)
-    p, R, _ = prob1.pose(xp)
+    p, R, _, _ = prob1.pose(xp)
     return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats)
 
 
@@ -348,7 +345,7 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     motion = platform.PlatformMotion.rest(co, static.position, static.rotation)
     layout = leg_layout(scene, True)
     sc = scales(scene, co.c0)
-    x = _unknowns(scene, layout, sc, static.position, static.rotation, static.rotation, nodes)
+    x = _unknowns(scene, layout, sc, static.position, static.rotation, static.position, static.rotation, nodes)
     return StepState(
         nodes=nodes,
         z_prev=z,
@@ -362,9 +359,9 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     )
 
 
-def _unknowns(scene, layout, sc, p, R, R_ref, nodes):
-    """Scaled unknowns reproducing platform pose (p, R) (relative to R_ref) and leg ``nodes``."""
-    xp = platform.pose_unknowns(p, R, R_ref, scene.effects.planar, sc.length)
+def _unknowns(scene, layout, sc, p, R, p_ref, R_ref, nodes):
+    """Scaled unknowns reproducing platform pose (p, R) (relative to (p_ref, R_ref)) and leg ``nodes``."""
+    xp = platform.pose_unknowns(p, R, p_ref, R_ref, scene.effects.planar, sc.length)
     R_legs = _leg_R_ref(layout, nodes)
     xl = jax.vmap(lambda nd, Rr: unknowns_from_nodes(layout, nd, Rr, sc))(nodes, R_legs)
     return jnp.concatenate([xp, xl.reshape(-1)])
@@ -424,11 +421,11 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     h_st = state.history.stages.reshape(n, -1, 12)
     z_st = _z(scene, prob.k, st_flat, h_st).reshape(stages.shape[:3] + (12,))
     history = jax.vmap(lambda h, zz, zs, zp: rod_history.advance(co, h, zz, zs, zp))(state.history, z, z_st, state.z_prev)
-    p, R, theta = prob.pose(xp)
-    r = platform.rates(co, state.motion, p, theta)
-    motion = platform.advance(co, state.motion, p, R, r)
-    x_rel = _unknowns(scene, layout, prob.sc, p, R, R, nodes)
-    x_prev_rel = _unknowns(scene, layout, prob.sc, state.motion.p1, state.motion.R1, R, state.nodes)
+    p, R, dp, theta = prob.pose(xp)
+    r = platform.rates(co, state.motion, dp, theta)
+    motion = platform.advance(co, state.motion, p, R, dp, r)
+    x_rel = _unknowns(scene, layout, prob.sc, p, R, p, R, nodes)
+    x_prev_rel = _unknowns(scene, layout, prob.sc, state.motion.p1, state.motion.R1, p, R, state.nodes)
     new_state = StepState(
         nodes=nodes,
         z_prev=z,
