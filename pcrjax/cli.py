@@ -109,9 +109,16 @@ def cmd_scenes(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_bench
+    if args.case == "cantilever":
+        from .bench import run_bench
 
-    return run_bench(args)
+        args.nodes = args.nodes or "5,10,20,40,80,160"
+        args.reference_nodes = args.reference_nodes or 320
+        return run_bench(args)
+    from .bench_parallel import run_parallel_bench
+
+    run_parallel_bench(args)
+    return 0
 
 
 def cmd_inverse(args) -> int:
@@ -151,11 +158,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out")
     p.set_defaults(func=cmd_inverse)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
-    p.add_argument("case", choices=["cantilever"], help="benchmark case")
-    p.add_argument("--nodes", default="5,10,20,40,80,160", help="comma-separated N values")
-    p.add_argument("--integrators", default="rk4,euler")
+    p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele"], help="benchmark case")
+    p.add_argument("--nodes", help="comma-separated N values (RK4 for the parallel robots); default per case")
+    p.add_argument("--euler-nodes", help="parallel robots: comma-separated N values for explicit Euler")
+    p.add_argument("--integrators", default="rk4,euler", help="cantilever: integrators to run")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
-    p.add_argument("--reference-nodes", type=int, default=320, help="N of the converged RK4 reference")
+    p.add_argument("--reference-nodes", type=int, help="N of the converged RK4 reference (default 320 cantilever, 80 Stewart-Gough, 100 Triskele)")
+    p.add_argument("--noise", action="store_true", help="stewart_gough: also print the thesis noise table (alpha x N x dt)")
+    p.add_argument("--noise-nodes", default="5,10,50,85,170", help="N values of the noise table")
     p.add_argument("--tol", type=float, default=1e-10, help="Newton tolerance of the measured runs (reference: 1e-12)")
     p.add_argument("--json", help="also write the table as JSON to this file")
     p.set_defaults(func=cmd_bench)

@@ -41,7 +41,7 @@ class Platform(eqx.Module):
 
 
 class PlatformMotion(eqx.Module):
-    """BDF-alpha memory of the platform at the start of a step (values of step i-1).
+    r"""BDF-alpha memory of the platform at the start of a step (values of step i-1).
 
     Positions enter only through the displacement $\Delta p = p - p_{i-1}$:
     $v = c_0 \Delta p + g_p$ and $a = c_0 (v - v_{i-1}) + g_v$ with the motion parts
