@@ -143,21 +143,18 @@ class _Reader:
         return v
 
     def vector(self, table: dict, tname: str, key: str, default=None, *, nonneg=False):
-        where = f"[{tname}] {key}"
-        if key not in table:
-            return default
-        v = table[key]
-        if not isinstance(v, list) or len(v) != 3 or any(isinstance(a, bool) or not isinstance(a, (int, float)) for a in v):
-            self.fail(where, f"must be a list of 3 numbers, got {v!r}")
-        a = np.asarray(v, dtype=float)
-        if not np.all(np.isfinite(a)):
-            self.fail(where, f"must be finite, got {v}")
+        """A 3-vector (numbers, finite; ``nonneg``: none negative)."""
+        a = self.numbers(table, tname, key, None, default)
+        if a is default:
+            return a
+        if a.shape != (3,):
+            self.fail(f"[{tname}] {key}", f"must be a list of 3 numbers, got {table[key]!r}")
         if nonneg and np.any(a < 0):
-            self.fail(where, f"must be >= 0, got {v}")
+            self.fail(f"[{tname}] {key}", f"must be >= 0, got {table[key]}")
         return a
 
     def numbers(self, table: dict, tname: str, key: str, length: int | None = None, default=None, *, required=False):
-        """A list of numbers (``length`` of them if given) as a float array."""
+        """A list of numbers (``length`` of them if given: one per leg) as a finite float array."""
         where = f"[{tname}] {key}"
         if key not in table:
             if required:

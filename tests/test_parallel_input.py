@@ -81,3 +81,26 @@ def test_bad_parallel_scene_one_line_exit_2(case, tmp_path, capsys):
     assert err.count("\n") == 0, err
     assert needle in err, err
     assert "Traceback" not in err
+
+
+def test_static_stewart_gough_json(capsys):
+    import json
+
+    assert main(["static", "stewart_gough", "--nodes", "10"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert len(out["base_wrenches"]) == 6 and all(len(w) == 2 and len(w[0]) == 3 for w in out["base_wrenches"])
+    assert out["residual_norm"] <= 1e-10 and 0.1 < out["position"][2] < 0.17
+
+
+def test_simulate_triskele_writes_outputs(tmp_path):
+    import csv
+    import json
+
+    out = tmp_path / "tk"
+    assert main(["simulate", "triskele", "--nodes", "10", "--duration", "0.02", "--out", str(out), "--quiet"]) == 0
+    rows = list(csv.reader((out / "trajectory.csv").open()))
+    assert rows[0] == ["t_s", "x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad", "a1", "a2", "a3"]
+    assert len(rows) == 1 + 21
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["converged"] and summary["settings"]["legs"] == 3 and summary["steps_done"] == 20
+    assert (out / "platform_path.png").stat().st_size > 0 and (out / "legs.png").stat().st_size > 0
