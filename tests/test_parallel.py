@@ -169,9 +169,9 @@ def test_gradient_after_50_steps_wrt_each_leg_length_matches_fd():
     _check_gradient(_stepped(-0.2, [1e-3, 2e-3, 3e-3]), 0, "L", 1e-6)
 
 
-@pytest.mark.xfail(reason="open: at alpha -0.5 the reverse-mode gradient is NaN, and with strong damping the "
-                   "damping's effect after 50 steps is too small for a 1e-6 finite-difference check; see issue 3 note", strict=False)
+@pytest.mark.xfail(reason="open (issue 3): at alpha -0.45 grad and central differences agree to 4e-7, 1.6e-7 and "
+                   "1.8e-6 (the last above 1e-6; FD step under study); at alpha -0.5 the reverse-mode gradient is NaN", strict=False)
 def test_gradient_after_50_steps_wrt_each_leg_damping_matches_fd():
     # Light damping (modal ratio 0.5-1.5 %) and little numerical damping keep the transient, and
-    # so the damping's effect, alive for 50 steps. Step 1e-3 relative: truncation ~ 1e-6.
-    _check_gradient(_stepped(-0.45, [1e-5, 2e-5, 3e-5]), 1, "tau", 1e-3)
+    # so the damping's effect, alive for 50 steps.
+    _check_gradient(_stepped(-0.45, [1e-5, 2e-5, 3e-5]), 1, "tau", 3e-4)
