@@ -40,13 +40,6 @@ def _sg_motion(scene):
     return dataclasses.replace(scene, actuation=moved)
 
 
-def _timed(scene):
-    simulate(scene)  # compile (or load from the persistent cache)
-    tm: dict = {}
-    tr = simulate(scene, timings=tm)
-    return tr, tm
-
-
 def _row(label, scene, tr, tm, compile_s, ref):
     per_step = tm["run_s"] / tm["steps"]
     pos = np.asarray(tr.position)
@@ -86,8 +79,9 @@ def _sweep(label, base, grid, dts, reference_nodes, duration):
         for integ, n in grid:
             scene = with_solver(base, nodes=n, integrator=integ, dt=dt, duration=duration)
             cold: dict = {}
-            simulate(scene, timings=cold)
-            tr, tm = _timed(scene)
+            simulate(scene, timings=cold)  # compiles (or loads from the persistent cache)
+            tm: dict = {}
+            tr = simulate(scene, timings=tm)  # measured
             row = _row(label, scene, tr, tm, cold["compile_s"], ref)
             rows.append(row)
             _print(row)

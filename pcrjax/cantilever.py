@@ -11,14 +11,12 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from . import bdf_alpha, newton, rod_history
-from .rod import coefficients, kinematic_state
+from .rod import coefficients
 from .rod_history import RodHistory
 from .rotations import cross
-from .shooting import Layout, make_scales, shoot, unknowns_from_nodes
-from .spatial import integrate
+from .shooting import Layout, make_scales, segment_rotations, shoot, unknowns_from_nodes
 
 
 def tip_load(scene, t):
@@ -102,18 +100,10 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     layout = dynamic_layout(scene)
     s = scene.solver
     co = bdf_alpha.coefficients(s.dt, s.alpha)
-    nodes = jnp.concatenate([static.nodes, jnp.zeros((s.grid_nodes + 1, 6))], axis=1)
-    # At rest the dynamic equations reduce to the static ones, so the stage states are the static
-    # ones with zero velocities. Strains follow from the loads with any history satisfying
-    # h = -c0 z; compute z with the damping-free law (identical at rest), then the rest history.
-    stages = _static_stages(scene, static)
-    k_static = coefficients(scene.rod, dataclasses.replace(scene.effects, damping=False), co.c0, scene.gravity)
-    z_of = jax.vmap(lambda y: kinematic_state(y, jnp.zeros(12, y.dtype), k_static, scene.effects))
-    z = z_of(nodes)
-    z_st = z_of(stages.reshape(-1, nodes.shape[1])).reshape(stages.shape[:2] + (12,))
-    history = rod_history.rest(co, z, z_st)
+    ds = scene.rod.length / s.grid_nodes
+    nodes, z, history = rod_history.at_rest(co, scene.rod, scene.effects, scene.gravity, static.nodes, ds, s.integrator)
     sc = make_scales(scene.rod, co.c0)
-    R_ref = _segment_rotations(layout, nodes)
+    R_ref = segment_rotations(layout, nodes)
     x = unknowns_from_nodes(layout, nodes, R_ref, sc)
     return StepState(
         nodes=nodes,
@@ -123,22 +113,6 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
         jac=newton.Jacobian.empty(layout.size),
         has_jac=jnp.asarray(False),
     )
-
-
-def _static_stages(scene, static: StaticSolution):
-    """RK4 stage states (N, 3, 24) of the static solution, velocities zero (N, 0, 24) for Euler)."""
-    s = scene.solver
-    effects = dataclasses.replace(scene.effects, inertia=False)
-    k = coefficients(scene.rod, effects, jnp.zeros(()), scene.gravity)
-    ds = scene.rod.length / s.grid_nodes
-    hist = RodHistory.zeros(s.grid_nodes, s.integrator)
-    _, _, st = integrate(static.nodes[0], hist.nodes, k, effects, ds, s.integrator, stage_history=hist.stages, return_stages=True)
-    return jnp.concatenate([st, jnp.zeros(st.shape[:2] + (6,), st.dtype)], axis=2)
-
-
-def _segment_rotations(layout, nodes):
-    idx = np.asarray(layout.starts, dtype=int)
-    return nodes[idx, 3:12].reshape(-1, 3, 3)
 
 
 class StepOutput(eqx.Module):
@@ -162,7 +136,7 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     ds = scene.rod.length / s.grid_nodes
     F, M = tip_load(scene, t)
     y0 = base_state(scene, True)
-    R_ref = _segment_rotations(layout, state.nodes)
+    R_ref = segment_rotations(layout, state.nodes)
 
     def residual(x):
         nodes, junctions = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll)
@@ -175,12 +149,10 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     retry = (lambda z, _s: residual(z), jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
     x, jac, stats = newton.solve(residual, guess, state.jac, _colouring(layout), s.newton, ~state.has_jac, retry)
     nodes, _, stages = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, return_stages=True)
-    z = jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects))(nodes, state.history.nodes)
-    z_st = jax.vmap(jax.vmap(lambda y, h: kinematic_state(y, h, k, scene.effects)))(stages, state.history.stages)
-    history = rod_history.advance(co, state.history, z, z_st, state.z_prev)
+    z, history = rod_history.after_step(co, state.history, k, scene.effects, nodes, stages, state.z_prev)
     # Unknowns of this step expressed relative to this step's reference rotations, so that the
     # next step's extrapolation compares like with like.
-    R_new = _segment_rotations(layout, nodes)
+    R_new = segment_rotations(layout, nodes)
     x_rel = unknowns_from_nodes(layout, nodes, R_new, sc)
     x_prev_rel = unknowns_from_nodes(layout, state.nodes, R_new, sc)
     new_state = StepState(

@@ -179,7 +179,7 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
 
             def run():
                 x2, jac2, st = newton(lambda z: homotopy(z, s), jnp.where(from_prev, x, start), jac, jac_fn, settings, True)
-                return x2, jac2, (s == 1.0) & (st.residual <= settings.tol), _add(total, st)
+                return x2, jac2, (s == 1.0) & (st.residual <= settings.tol), accumulate(total, st)
 
             return jax.lax.cond(done, lambda: (x, jac, done, total), run), None
 
@@ -206,7 +206,8 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
     return x, jac, stats
 
 
-def _add(total: Stats, st: Stats) -> Stats:
+def accumulate(total: Stats, st: Stats) -> Stats:
+    """Stats of two solves in sequence: counts add up, the residual is the later one's."""
     return Stats(total.iterations + st.iterations, st.residual, total.jacobians + st.jacobians, total.evaluations + st.evaluations)
 
 

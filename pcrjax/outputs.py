@@ -73,6 +73,35 @@ def scene_settings(scene) -> dict:
     return out
 
 
+def _time_series(ax, t, values, labels, ylabel):
+    for v, lab in zip(values.T, labels):
+        ax.plot(t, v, label=lab)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(ylabel)
+    ax.legend()
+    ax.grid(alpha=0.3)
+
+
+def _path(fig, ax, t, x, y, xlabel, ylabel, title):
+    """Path in a plane, coloured by time."""
+    sc = ax.scatter(x, y, c=t, s=4, cmap="viridis")
+    ax.plot(x, y, lw=0.5, color="0.6")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title)
+    fig.colorbar(sc, ax=ax, label="t [s]")
+
+
+def _save(fig, path: Path, title: str):
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def plot_tip(path: Path, traj, title: str):
     import matplotlib
 
@@ -83,27 +112,11 @@ def plot_tip(path: Path, traj, title: str):
     p = np.asarray(traj.position)
     d = (p - p[0]) * 1e3
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    for i, lab in enumerate("xyz"):
-        ax[0].plot(t, d[:, i], label=f"{lab} − {lab}(0)")
-    ax[0].set_xlabel("t [s]")
-    ax[0].set_ylabel("tip displacement [mm]")
-    ax[0].legend()
-    ax[0].grid(alpha=0.3)
+    _time_series(ax[0], t, d, [f"{c} − {c}(0)" for c in "xyz"], "tip displacement [mm]")
     # Path in the plane of largest motion.
-    spread = d.std(axis=0)
-    i, j = np.argsort(spread)[::-1][:2]
-    i, j = sorted((i, j))
-    sc = ax[1].scatter(p[:, i] * 1e3, p[:, j] * 1e3, c=t, s=4, cmap="viridis")
-    ax[1].plot(p[:, i] * 1e3, p[:, j] * 1e3, lw=0.5, color="0.6")
-    ax[1].set_xlabel(f"{'xyz'[i]} [mm]")
-    ax[1].set_ylabel(f"{'xyz'[j]} [mm]")
-    ax[1].set_aspect("equal", adjustable="datalim")
-    ax[1].set_title("tip path")
-    fig.colorbar(sc, ax=ax[1], label="t [s]")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    i, j = sorted(np.argsort(d.std(axis=0))[::-1][:2])
+    _path(fig, ax[1], t, p[:, i] * 1e3, p[:, j] * 1e3, f"{'xyz'[i]} [mm]", f"{'xyz'[j]} [mm]", "tip path")
+    _save(fig, path, title)
 
 
 def plot_shapes(path: Path, traj, title: str, count: int = 12):
@@ -145,29 +158,10 @@ def plot_platform(path: Path, traj, title: str):
     rv = np.asarray(traj.rotation_vector)
     d = (p - p[0]) * 1e6
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    for i, lab in enumerate("xyz"):
-        ax[0].plot(t, d[:, i], label=f"{lab} − {lab}(0)")
-    ax[0].set_xlabel("t [s]")
-    ax[0].set_ylabel("platform displacement [µm]")
-    ax[0].legend()
-    ax[0].grid(alpha=0.3)
-    for i, lab in enumerate("xyz"):
-        ax[1].plot(t, (rv[:, i] - rv[0, i]) * 1e6, label=f"r{lab} − r{lab}(0)")
-    ax[1].set_xlabel("t [s]")
-    ax[1].set_ylabel("rotation vector change [µrad]")
-    ax[1].legend()
-    ax[1].grid(alpha=0.3)
-    sc = ax[2].scatter(d[:, 0], d[:, 1], c=t, s=4, cmap="viridis")
-    ax[2].plot(d[:, 0], d[:, 1], lw=0.5, color="0.6")
-    ax[2].set_xlabel("x − x(0) [µm]")
-    ax[2].set_ylabel("y − y(0) [µm]")
-    ax[2].set_aspect("equal", adjustable="datalim")
-    ax[2].set_title("platform path")
-    fig.colorbar(sc, ax=ax[2], label="t [s]")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _time_series(ax[0], t, d, [f"{c} − {c}(0)" for c in "xyz"], "platform displacement [µm]")
+    _time_series(ax[1], t, (rv - rv[0]) * 1e6, [f"r{c} − r{c}(0)" for c in "xyz"], "rotation vector change [µrad]")
+    _path(fig, ax[2], t, d[:, 0], d[:, 1], "x − x(0) [µm]", "y − y(0) [µm]", "platform path")
+    _save(fig, path, title)
 
 
 def plot_legs(path: Path, traj, title: str):
@@ -192,7 +186,4 @@ def plot_legs(path: Path, traj, title: str):
     ax[0].set_title("top view")
     ax[1].set_title("side view")
     ax[0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{title}: legs")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path, f"{title}: legs")

@@ -33,11 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import bdf_alpha, newton, platform, rod_history
-from .rod import coefficients, kinematic_state
+from .rod import coefficients
 from .rod_history import RodHistory
 from .rotations import exp_map, matmul, matvec, rotation_vector, skew_vee, transpose_matmul
-from .shooting import Layout, make_scales, shoot, unknowns_from_nodes
-from .spatial import integrate
+from .shooting import Layout, make_scales, segment_rotations, shoot, unknowns_from_nodes
 
 TIP = 18  # tip state used by the platform: p, R, n, m
 
@@ -138,15 +137,11 @@ class _Problem:
     def pose(self, xp):
         return platform.pose(xp, self.scene.effects.planar, self.cfg.p_prev, self.cfg.R_prev, self.sc.length)
 
-    def rates(self, xp):
-        _, _, dp, theta = self.pose(xp)
-        return platform.rates(self.cfg.co, self.cfg.motion, dp, theta)
-
     def algebraic(self, xp, tips):
         """[balance (P), tip constraints (6 per leg)] from the pose unknowns and the leg tips."""
         c, sc = self.cfg, self.sc
-        p, R, _, _ = self.pose(xp)
-        r = self.rates(xp) if self.inertia else None
+        p, R, dp, theta = self.pose(xp)
+        r = platform.rates(c.co, c.motion, dp, theta) if self.inertia else None
         force, moment = platform.balance(self.scene.platform, R, c.attachment, tips[:, 12:15], tips[:, 15:18], c.F, c.M, c.weight, r)
         bal = jnp.concatenate([force / sc.force, moment / sc.moment])
         if self.scene.effects.planar:
@@ -198,8 +193,7 @@ def _tangent_jac(g, y):
 
 def _leg_R_ref(layout: Layout, nodes):
     """(n, M-1, 3, 3) rotations of each leg at its segment starts."""
-    idx = np.asarray(layout.starts, dtype=int)
-    return nodes[:, idx, 3:12].reshape(nodes.shape[0], -1, 3, 3)
+    return jax.vmap(lambda nd: segment_rotations(layout, nd))(nodes)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -259,14 +253,13 @@ def solve_static(scene, t=0.0) -> StaticSolution:
         return _Problem(scene, cfg, inertia=False)
 
     prob1 = problem(jnp.asarray(1.0))
-    sc = prob1.sc
     x0 = jax.lax.stop_gradient(jnp.zeros(pose_size(scene) + n * layout.size))  # reference pose, zero wrenches
 
     def stage(carry, lam):
         x, jac, total = carry
         pr = problem(lam)
         x, jac, st = newton.newton(pr.residual, x, jac, _jac_fn(pr), s.newton, need_jacobian=False)
-        return (x, jac, newton._add(total, st)), st.residual
+        return (x, jac, newton.accumulate(total, st)), None
 
     k = max(1, s.continuation)
     lams = jnp.arange(1, k, dtype=jnp.float64) / k
@@ -275,7 +268,7 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     (x_c, jac_c, cont), _ = jax.lax.scan(stage, (x0, jac_start, zero), lams)
     x_c = jax.lax.stop_gradient(x_c)
     x, _, stats = newton.solve(prob1.residual, x_c, jax.lax.stop_gradient(jac_c), _jac_fn(prob1), s.newton, False, tangent_jac_fn=_tangent_jac)
-    stats = newton._add(cont, stats)
+    stats = newton.accumulate(cont, stats)
     xp, xl = prob1.split(x)
     _, _, nodes = prob1.legs(xl)
     p, R, _, _ = prob1.pose(xp)
@@ -307,41 +300,14 @@ class StepOutput(eqx.Module):
     stats: newton.Stats
 
 
-def _static_stages(scene, static: StaticSolution, a):
-    """RK4 stage states (n, N, 3, 24) of the static legs, velocities zero."""
-    s = scene.solver
-    effects = dataclasses.replace(scene.effects, inertia=False)
-    ds = scene.legs.lengths(a) / s.grid_nodes
-    hist = RodHistory.zeros(s.grid_nodes, s.integrator)
-
-    def one(rod, y0, ds_i):
-        k = coefficients(rod, effects, jnp.zeros(()), scene.gravity)
-        _, _, st = integrate(y0, hist.nodes, k, effects, ds_i, s.integrator, stage_history=hist.stages, return_stages=True)
-        return jnp.concatenate([st, jnp.zeros(st.shape[:2] + (6,), st.dtype)], axis=2)
-
-    return jax.vmap(one)(scene.legs.rod, static.nodes[:, 0], ds)
-
-
-def _z(scene, k, nodes, hist):
-    """Kinematic states at nodes (n, N+1, 12) for per-leg coefficients ``k``."""
-    return jax.vmap(jax.vmap(lambda y, h, kk: kinematic_state(y, h, kk, scene.effects), in_axes=(0, 0, None)))(nodes, hist, k)
-
-
 def initial_step_state(scene, static: StaticSolution) -> StepState:
     """Rest at the static equilibrium (rods, platform and actuators at rest forever)."""
     s = scene.solver
-    n = scene.legs.count
     co = bdf_alpha.coefficients(s.dt, s.alpha)
     a = scene.actuation(jnp.zeros(()))
-    nodes = jnp.concatenate([static.nodes, jnp.zeros(static.nodes.shape[:2] + (6,))], axis=2)
-    stages = _static_stages(scene, static, a)
-    eff = dataclasses.replace(scene.effects, damping=False)
-    k = jax.vmap(lambda rod: coefficients(rod, eff, co.c0, scene.gravity))(scene.legs.rod)
-    zero = jnp.zeros(nodes.shape[:2] + (12,))
-    z = _z(scene, k, nodes, zero)
-    st_flat = stages.reshape(n, -1, stages.shape[-1])
-    z_st = _z(scene, k, st_flat, jnp.zeros(st_flat.shape[:2] + (12,))).reshape(stages.shape[:3] + (12,))
-    history = jax.vmap(lambda zz, zs: rod_history.rest(co, zz, zs))(z, z_st)
+    ds = scene.legs.lengths(a) / s.grid_nodes
+    rest = lambda rod, nd, ds_i: rod_history.at_rest(co, rod, scene.effects, scene.gravity, nd, ds_i, s.integrator)  # noqa: E731
+    nodes, z, history = jax.vmap(rest)(scene.legs.rod, static.nodes, ds)
     motion = platform.PlatformMotion.rest(co, static.position, static.rotation)
     layout = leg_layout(scene, True)
     sc = scales(scene, co.c0)
@@ -386,7 +352,6 @@ def rod_energy(scene, k, nodes, z, ds):
 def step(scene, state: StepState, t, extrapolate: bool = True):
     """Advance one time step to time ``t``; returns (new state, output)."""
     s = scene.solver
-    n = scene.legs.count
     co = bdf_alpha.coefficients(s.dt, s.alpha)
     layout = leg_layout(scene, True)
     a = scene.actuation(t)
@@ -416,11 +381,8 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     x, jac, stats = newton.solve(prob.residual, guess, state.jac, _jac_fn(prob), s.newton, ~state.has_jac, retry, tangent_jac_fn=_tangent_jac)
     xp, xl = prob.split(x)
     _, _, nodes, stages = prob.legs(xl, return_stages=True)
-    z = _z(scene, prob.k, nodes, state.history.nodes)
-    st_flat = stages.reshape(n, -1, stages.shape[-1])
-    h_st = state.history.stages.reshape(n, -1, 12)
-    z_st = _z(scene, prob.k, st_flat, h_st).reshape(stages.shape[:3] + (12,))
-    history = jax.vmap(lambda h, zz, zs, zp: rod_history.advance(co, h, zz, zs, zp))(state.history, z, z_st, state.z_prev)
+    after = lambda h, k, nd, st, zp: rod_history.after_step(co, h, k, scene.effects, nd, st, zp)  # noqa: E731
+    z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
     p, R, dp, theta = prob.pose(xp)
     r = platform.rates(co, state.motion, dp, theta)
     motion = platform.advance(co, state.motion, p, R, dp, r)

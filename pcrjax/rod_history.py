@@ -23,11 +23,15 @@ Euler evaluates at nodes only; there the split changes nothing.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from . import bdf_alpha
-from .spatial import midpoints
+from .rod import coefficients, kinematic_state
+from .spatial import integrate, midpoints
 
 
 class RodHistory(eqx.Module):
@@ -61,3 +65,35 @@ def advance(co: bdf_alpha.Coefficients, hist: RodHistory, z_nodes, z_stages, z_p
     gm = midpoints(g)
     g_st = jnp.stack([gm, gm, g[1:]], axis=1)
     return RodHistory(h_nodes, g_st - co.c0 * z_stages)
+
+
+def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, ds, integrator):
+    """A rod that has rested forever in the static solution ``static_nodes`` (N+1, 18).
+
+    Returns ``(nodes (N+1, 24), z (N+1, 12), history)``. At rest the dynamic equations reduce to
+    the static ones, so the stage states are the static ones with zero velocities. Strains follow
+    from the loads with any history satisfying $h = -c_0 z$; z is computed with the damping-free
+    law (identical at rest), then the rest history.
+    """
+    static_eff = dataclasses.replace(effects, inertia=False)
+    k = coefficients(rod, static_eff, jnp.zeros((), static_nodes.dtype), gravity)
+    zero = RodHistory.zeros(static_nodes.shape[0] - 1, integrator, dtype=static_nodes.dtype)
+    _, _, stages = integrate(static_nodes[0], zero.nodes, k, static_eff, ds, integrator, stage_history=zero.stages, return_stages=True)
+
+    def with_velocities(a):
+        return jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (6,), a.dtype)], axis=-1)
+
+    nodes, stages = with_velocities(static_nodes), with_velocities(stages)
+    k_rest = coefficients(rod, dataclasses.replace(effects, damping=False), co.c0, gravity)
+    z_of = jax.vmap(lambda y: kinematic_state(y, jnp.zeros(12, y.dtype), k_rest, effects))
+    z = z_of(nodes)
+    z_st = z_of(stages.reshape(-1, nodes.shape[1])).reshape(stages.shape[:2] + (12,))
+    return nodes, z, rest(co, z, z_st)
+
+
+def after_step(co: bdf_alpha.Coefficients, hist: RodHistory, k, effects, nodes, stages, z_prev):
+    """``(z, next history)`` from a solved step's ``nodes`` (N+1, 24) and RK4 ``stages`` (N, 3, 24)."""
+    kin = lambda y, h: kinematic_state(y, h, k, effects)  # noqa: E731
+    z = jax.vmap(kin)(nodes, hist.nodes)
+    z_st = jax.vmap(jax.vmap(kin))(stages, hist.stages)
+    return z, advance(co, hist, z, z_st, z_prev)

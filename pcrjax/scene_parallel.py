@@ -14,6 +14,7 @@ base displacements ``q_i``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -250,8 +251,6 @@ def parallel_scene(r: _Reader, robot: str, name: str) -> ParallelScene:
 
 
 def _with_lengths(rod, lengths):
-    import dataclasses
-
     return dataclasses.replace(rod, length=_f(lengths))
 
 

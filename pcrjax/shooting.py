@@ -100,6 +100,13 @@ class Layout(eqx.Module):
         return np.asarray(colours), mask
 
 
+def segment_rotations(layout: Layout, nodes):
+    """Rotations (M-1, 3, 3) of ``nodes`` at the starts of segments 1.. (the references of their
+    rotation unknowns)."""
+    idx = np.asarray(layout.starts, dtype=int)
+    return nodes[idx, 3:12].reshape(-1, 3, 3)
+
+
 def restart_states(layout: Layout, x, R_ref, sc: Scales):
     """Unscaled start states (M-1, dim) of segments 1.. from the unknown vector."""
     d = layout.segment_dim

@@ -30,8 +30,7 @@ def noise(position):
 
 
 def triskele(nodes=10, **solver):
-    sc = with_solver(load_scene("triskele"), nodes=nodes, **solver)
-    return sc
+    return with_solver(load_scene("triskele"), nodes=nodes, **solver)
 
 
 # ----------------------------------------------------------------------------------------------
