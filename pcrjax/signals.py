@@ -89,7 +89,7 @@ def _shape(kind: str, u):
         return u
     if kind == "smooth_step":
         return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
-    return jnp.zeros_like(u)
+    raise ValueError(f"unknown actuation kind {kind!r}: expected one of {', '.join(KINDS)}")
 
 
 class Actuation(eqx.Module):
