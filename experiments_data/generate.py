@@ -1,0 +1,141 @@
+"""Generate the shipped synthetic recordings (DESIGN §4): ``python experiments_data/generate.py``.
+
+No measured log of the Triskele-bot is public, so these recordings are simulated from stated
+"true" parameters that differ from the nominal scenes, then filmed by a model of the thesis's
+encoded-pattern camera (5.1.2): 114.44 frames/s, 0.2 ms exposure (each frame averages the
+motion over it), the pose reported in an unknown pattern frame (millimetres, degrees), a small
+unknown delay between the actuator command and the first frame, sensor noise of nanometres and
+microradians, and a few percent of frames that failed to decode (absent rows). Each CSV's
+sidecar says ``synthetic = true`` and holds every generating number and the seed.
+
+The truth is simulated with the solver settings written in the sidecar (the ones a fit uses),
+so a fit can recover it to the noise level; see the issue note for fits on truths simulated
+more finely than the fit's model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT.parent))
+
+import pcrjax  # noqa: E402
+from identify import camera, experiment  # noqa: E402
+from identify.recording import Recording, load_recording, write_recording  # noqa: E402
+
+SOLVER_TRISKELE = dict(nodes=10, integrator="rk4", dt=5e-4, alpha=-0.45, tol=1e-10)
+# Oscillations of the 90-160 Hz platform modes decay within about a second: zeta = omega tau / 2
+# = 0.006-0.01 at tau = 2e-5 s (exp(-zeta omega t) < e^-4 at t = 1 s).
+TRISKELE_TRUTH = dict(tau=2e-5, lengths=[0.0312, 0.0329, 0.0308])
+
+RECORDINGS = {
+    "triskele_push_release": dict(
+        scene="triskele",
+        experiment="push_release",
+        description="Triskele-bot free motion after a push on the platform is released at t = 0 (thesis 5.2), 2 s.",
+        frame_rate=114.44,
+        exposure=2e-4,
+        seconds=2.0,
+        solver=SOLVER_TRISKELE,
+        effects=dict(damping=True),
+        rod=dict(tau=1e-5),
+        load=dict(force=[0.005, 0.0, 0.0], moment=[0.0, 0.0, 1e-4], release_time=0.0),
+        truth=dict(TRISKELE_TRUTH, push_force=[0.0042, 0.0011], push_moment=0.8e-4,
+                   frame_offset=[1.3e-3, -0.7e-3], frame_rotation=0.026, time_offset=3.1e-3,
+                   noise_position=2e-9, noise_angle=2e-6, missing_fraction=0.03, seed=11),
+    ),
+    "triskele_actuator_step": dict(
+        scene="triskele",
+        experiment="actuator_step",
+        description="Triskele-bot actuator step: bases slide by +10, -5, +2.5 um in a 10 ms smooth step at t = 0.05 s "
+        "(fast, yet no fibre is pushed near its 32 mN buckling load), 2 s.",
+        frame_rate=114.44,
+        exposure=2e-4,
+        seconds=2.0,
+        solver=SOLVER_TRISKELE,
+        effects=dict(damping=True),
+        rod=dict(tau=1e-5),
+        load=dict(force=[0.0, 0.0, 0.0], moment=[0.0, 0.0, 0.0]),
+        actuation=dict(initial=[0.0, 0.0, 0.0], final=[1e-5, -5e-6, 2.5e-6], kind="smooth_step", start_time=0.05, duration=0.01),
+        truth=dict(TRISKELE_TRUTH, frame_offset=[-0.9e-3, 2.1e-3], frame_rotation=-0.035, time_offset=2.4e-3,
+                   noise_position=2e-9, noise_angle=2e-6, missing_fraction=0.03, seed=12),
+    ),
+    "cantilever_release": dict(
+        scene="cantilever",
+        experiment="release",
+        description="Thesis cantilever released from a tip load at t = 0, tip marker filmed at 1 kHz in the bending plane "
+        "(the setting of Till & Rucker's validation), 1 s.",
+        frame_rate=1000.0,
+        exposure=1e-4,
+        seconds=1.0,
+        solver=dict(nodes=20, integrator="rk4", dt=1e-3, alpha=-0.45, tol=1e-10),
+        effects=dict(damping=True),
+        rod=dict(tau=1e-3),
+        tip=dict(force=[0.0, 0.0, -2.0], moment=[0.0, 0.0, 0.0], release_time=0.0),
+        # first mode 8.9 Hz: tau = 1.9 ms gives zeta = 0.053, decaying by e^-3 within 1 s
+        truth=dict(tau=1.9e-3, lengths=0.4016, push_force=[0.0, -1.93], frame_offset=[-0.21, 0.013], frame_rotation=0.012,
+                   time_offset=1.7e-3, noise_position=2e-6, noise_angle=2e-5, missing_fraction=0.02, seed=13),
+    ),
+}
+
+CAMERA_TRUTH = ("frame_offset", "frame_rotation", "time_offset")
+SENSOR = ("noise_position", "noise_angle", "missing_fraction", "seed")
+
+
+def sidecar(name: str, spec: dict) -> dict:
+    side = dict(scene=spec["scene"], experiment=spec["experiment"], frame_rate=spec["frame_rate"], exposure=spec["exposure"],
+                synthetic=True, description=spec["description"])
+    for table in ("solver", "effects", "rod", "actuation", "load", "tip"):
+        if table in spec:
+            side[table] = dict(spec[table])
+    side["solver"]["duration"] = spec["seconds"] + 0.05
+    side["truth"] = dict(spec["truth"])
+    side["provenance"] = dict(generator="experiments_data/generate.py", pcrjax=pcrjax.__version__ if hasattr(pcrjax, "__version__") else "0.1.0")
+    return side
+
+
+def generate(name: str, spec: dict, out_dir: Path) -> Path:
+    side = sidecar(name, spec)
+    truth = spec["truth"]
+    rng = np.random.default_rng(truth["seed"])
+    t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
+    rec = Recording(path=out_dir / f"{name}.csv", t=t_frames, pose=np.zeros((t_frames.size, 3)), scene=spec["scene"],
+                    experiment=spec["experiment"], frame_rate=spec["frame_rate"], exposure=spec["exposure"], synthetic=True,
+                    overrides={k: side[k] for k in ("solver", "effects", "rod", "actuation", "load", "tip") if k in side}, truth=truth)
+    scene = experiment.build_scene(rec)
+    params = {k: jnp.asarray(v, jnp.float64) for k, v in truth.items() if k not in SENSOR}
+    s = experiment.apply(scene, params)
+    traj = pcrjax.simulate(s, progress=True)
+    clean = camera.observe(experiment.planar_pose(s, traj), s.solver.dt, jnp.asarray(t_frames), spec["exposure"],
+                           params["frame_offset"], params["frame_rotation"], params["time_offset"])
+    noise = rng.standard_normal(clean.shape) * np.array([truth["noise_position"], truth["noise_position"], truth["noise_angle"]])
+    keep = rng.random(t_frames.size) >= truth["missing_fraction"]
+    keep[0] = True
+    path = out_dir / f"{name}.csv"
+    write_recording(path, t_frames[keep], np.asarray(clean)[keep] + noise[keep], side)
+    back = load_recording(path, require_sidecar=True)  # what users will load
+    print(f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
+          f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad")
+    return path
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("names", nargs="*", help=f"recordings to generate (default: all of {', '.join(RECORDINGS)})")
+    p.add_argument("--out", default=str(ROOT), help="output folder (default: experiments_data/)")
+    args = p.parse_args(argv)
+    for name in args.names or list(RECORDINGS):
+        generate(name, RECORDINGS[name], Path(args.out))
+
+
+if __name__ == "__main__":
+    main()

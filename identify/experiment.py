@@ -1,0 +1,132 @@
+"""From a recording to a simulation: the scene it belongs to, its parameters, its prediction.
+
+**Parameters** (a flat dict of float64 arrays, the fit's vocabulary):
+
+* ``tau`` (s): Kelvin-Voigt damping, shape () shared by all rods or (n,) per rod;
+* ``lengths`` (m): rod lengths, (n,) (a rod scene: ());
+* ``push_force`` (N, planar x, y) and ``push_moment`` (N m, about z): the load held until the
+  release of a push-and-release (a rod scene: ``push_force`` is the tip force in the bending
+  plane x, z);
+* ``frame_offset`` (m, 2), ``frame_rotation`` (rad), ``time_offset`` (s): the camera (`camera`).
+
+`apply` writes the physical ones into a scene (``eqx.tree_at``; a rod length changes with the
+attachment points held where they are, so the platform settles elsewhere); `predict` simulates
+and returns what the camera would have recorded at the recording's frame times.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+
+import pcrjax
+from pcrjax.rod import TauDamping
+from pcrjax.scene import SceneError, scene_from_dict
+
+from . import camera
+from .recording import Recording, RecordingError
+
+CAMERA = ("frame_offset", "frame_rotation", "time_offset")
+
+
+def _scene_file(name_or_path: str, base_dir: Path) -> Path:
+    p = Path(name_or_path)
+    if not p.is_absolute() and (base_dir / p).is_file():
+        return base_dir / p
+    if p.is_file():
+        return p
+    shipped = resources.files("pcrjax") / "scenes" / f"{name_or_path}.toml"
+    if not p.suffix and shipped.is_file():
+        return Path(str(shipped))
+    raise RecordingError(f"scene {name_or_path!r}: no such file or shipped scene")
+
+
+def build_scene(rec: Recording, scene: str | None = None):
+    """The scene of ``rec`` (or ``scene``, a name or path) with the sidecar's tables laid over it."""
+    name = scene or rec.scene
+    if name is None:
+        raise RecordingError(f"{rec.path}: no scene: give --scene or a sidecar with scene = ...")
+    path = _scene_file(name, rec.path.parent)
+    data = tomllib.loads(path.read_text())
+    for table, values in rec.overrides.items():
+        if table == "rod" and "rods" in data:
+            data.pop("rods")
+        data[table] = {**data.get(table, {}), **values}
+    try:
+        return scene_from_dict(data, str(path))
+    except SceneError as e:
+        raise RecordingError(f"{rec.path}: scene with the sidecar's settings: {e}") from None
+
+
+def is_rod(scene) -> bool:
+    return scene.robot == "rod"
+
+
+def nominal(scene) -> dict:
+    """The scene's own values of the physical parameters (damping must be switched on)."""
+    if not scene.effects.damping or not isinstance(_rod(scene).damping, TauDamping):
+        raise RecordingError("identification of tau needs [effects] damping = true with a [rod] tau")
+    rod = _rod(scene)
+    out = dict(tau=jnp.asarray(rod.damping.tau, jnp.float64), lengths=jnp.asarray(rod.length, jnp.float64))
+    if is_rod(scene):
+        out["push_force"] = scene.tip.force[jnp.array([0, 2])]
+    else:
+        out["push_force"] = scene.load.force[:2]
+        out["push_moment"] = scene.load.moment[2]
+    return out
+
+
+def _rod(scene):
+    return scene.rod if is_rod(scene) else scene.legs.rod
+
+
+def apply(scene, params: dict):
+    """``scene`` with the physical entries of ``params`` written in (others ignored)."""
+    rod_path = (lambda s: s.rod) if is_rod(scene) else (lambda s: s.legs.rod)
+    rod = rod_path(scene)
+    if "tau" in params:
+        tau = jnp.broadcast_to(params["tau"], jnp.shape(rod.damping.tau))
+        scene = eqx.tree_at(lambda s: rod_path(s).damping.tau, scene, tau)
+    if "lengths" in params:
+        scene = eqx.tree_at(lambda s: rod_path(s).length, scene, jnp.broadcast_to(params["lengths"], jnp.shape(rod.length)))
+    if "push_force" in params:
+        f = params["push_force"]
+        if is_rod(scene):
+            scene = eqx.tree_at(lambda s: s.tip.force, scene, jnp.stack([f[0], scene.tip.force[1], f[1]]))
+        else:
+            scene = eqx.tree_at(lambda s: s.load.force, scene, jnp.stack([f[0], f[1], scene.load.force[2]]))
+    if "push_moment" in params and not is_rod(scene):
+        m = params["push_moment"]
+        scene = eqx.tree_at(lambda s: s.load.moment, scene, jnp.stack([scene.load.moment[0], scene.load.moment[1], m]))
+    return scene
+
+
+def planar_pose(scene, traj):
+    """(T, 3) = x, y, theta of the platform (z-rotation), or of a rod's tip in its x-z bending
+    plane (y_cam = z, theta = -rotation about y: counter-clockwise seen with z up)."""
+    if is_rod(scene):
+        return jnp.stack([traj.position[:, 0], traj.position[:, 2], -traj.rotation_vector[:, 1]], axis=1)
+    return jnp.stack([traj.position[:, 0], traj.position[:, 1], traj.rotation_vector[:, 2]], axis=1)
+
+
+def predict(scene, params: dict, frame_times, exposure):
+    """(camera poses at ``frame_times`` (M, 3), trajectory): the recording ``params`` predict."""
+    s = apply(scene, params)
+    traj = pcrjax.rollout(s)
+    seen = camera.observe(planar_pose(s, traj), s.solver.dt, frame_times, exposure, params["frame_offset"], params["frame_rotation"], params["time_offset"])
+    return seen, traj
+
+
+def required_duration(rec: Recording, margin: float = 0.02) -> float:
+    """Simulated seconds that cover every frame, allowing for a time offset of ``margin``."""
+    return float(rec.t[-1]) + rec.exposure + margin
+
+
+def with_duration(scene, duration: float):
+    solver = scene.solver
+    return dataclasses.replace(scene, solver=pcrjax.with_solver(scene, duration=duration).solver) if solver.duration < duration else scene
