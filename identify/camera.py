@@ -24,7 +24,7 @@ _GL_WEIGHTS = np.array([5.0, 8.0, 5.0]) / 18.0
 def catmull_rom(samples, dt, t):
     """Interpolate ``samples`` (T, d), taken at ``k dt`` (k = 0..T-1), at times ``t`` (M,).
 
-    Clamped to the sampled range; C1 and exact for cubic polynomials away from the ends.
+    Clamped to the sampled range; C1, exact for quadratics, error O(dt^3) (away from the ends).
     """
     T = samples.shape[0]
     u = jnp.clip(t / dt, 0.0, T - 1.0)
