@@ -16,7 +16,6 @@ and returns what the camera would have recorded at the recording's frame times.
 
 from __future__ import annotations
 
-import dataclasses
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -128,5 +127,5 @@ def required_duration(rec: Recording, margin: float = 0.02) -> float:
 
 
 def with_duration(scene, duration: float):
-    solver = scene.solver
-    return dataclasses.replace(scene, solver=pcrjax.with_solver(scene, duration=duration).solver) if solver.duration < duration else scene
+    """``scene`` simulated for ``duration`` seconds (the recording's span), whatever it said."""
+    return pcrjax.with_solver(scene, duration=duration)

@@ -6,7 +6,6 @@ mode (`jax.grad`) for the tau-damped rollout, forward mode (`jax.jacfwd`) for th
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from helpers import rod_scene
 
