@@ -37,33 +37,25 @@ SOLVER_TRISKELE = dict(nodes=10, integrator="rk4", dt=5e-4, alpha=-0.45, tol=1e-
 # = 0.006-0.01 at tau = 2e-5 s (exp(-zeta omega t) < e^-4 at t = 1 s).
 TRISKELE_TRUTH = dict(tau=2e-5, lengths=[0.0312, 0.0329, 0.0308])
 
+# The thesis's camera (5.1.2) on the Triskele-bot, 2 s, nominal damping 1e-5 s switched on.
+TRISKELE_CAMERA = dict(scene="triskele", frame_rate=114.44, exposure=2e-4, seconds=2.0, solver=SOLVER_TRISKELE,
+                       effects=dict(damping=True), rod=dict(tau=1e-5))
+
 RECORDINGS = {
     "triskele_push_release": dict(
-        scene="triskele",
+        TRISKELE_CAMERA,
         experiment="push_release",
         description="Triskele-bot free motion after a push on the platform is released at t = 0 (thesis 5.2), 2 s.",
-        frame_rate=114.44,
-        exposure=2e-4,
-        seconds=2.0,
-        solver=SOLVER_TRISKELE,
-        effects=dict(damping=True),
-        rod=dict(tau=1e-5),
         load=dict(force=[0.005, 0.0, 0.0], moment=[0.0, 0.0, 1e-4], release_time=0.0),
         truth=dict(TRISKELE_TRUTH, push_force=[0.0042, 0.0011], push_moment=0.8e-4,
                    frame_offset=[1.3e-3, -0.7e-3], frame_rotation=0.026, time_offset=3.1e-3,
                    noise_position=2e-9, noise_angle=2e-6, missing_fraction=0.03, seed=11),
     ),
     "triskele_actuator_step": dict(
-        scene="triskele",
+        TRISKELE_CAMERA,
         experiment="actuator_step",
         description="Triskele-bot actuator step: bases slide by +10, -5, +2.5 um in a 10 ms smooth step at t = 0.05 s "
         "(fast, yet no fibre is pushed near its 32 mN buckling load), 2 s.",
-        frame_rate=114.44,
-        exposure=2e-4,
-        seconds=2.0,
-        solver=SOLVER_TRISKELE,
-        effects=dict(damping=True),
-        rod=dict(tau=1e-5),
         load=dict(force=[0.0, 0.0, 0.0], moment=[0.0, 0.0, 0.0]),
         actuation=dict(initial=[0.0, 0.0, 0.0], final=[1e-5, -5e-6, 2.5e-6], kind="smooth_step", start_time=0.05, duration=0.01),
         truth=dict(TRISKELE_TRUTH, frame_offset=[-0.9e-3, 2.1e-3], frame_rotation=-0.035, time_offset=2.4e-3,
