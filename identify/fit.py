@@ -78,6 +78,9 @@ class Problem:
         self.data = jnp.asarray(rec.pose)
         self.initial_values = self._initial_values(nom, initial or {})
         self.sigma = np.array([1e-9, 1e-9, 1e-6])  # replaced by estimates after the first pass
+        # compiled once per problem (sigma is an argument, so the second pass reuses them)
+        self.residual_jit = jax.jit(self.residual)
+        self.residual_and_jacobian = jax.jit(lambda th, sg: (self.residual(th, sg), jax.jacfwd(self.residual)(th, sg)))
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
@@ -156,11 +159,10 @@ def _covariance(J):
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
 
 
-def levenberg_marquardt(fun: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, state_file: Path | None = None, progress=None):
-    """Minimise ``0.5 |fun(theta)|^2``; Jacobians by `jax.jacfwd`. Returns (theta, J, r, iterations,
-    converged, history). Progress is saved to ``state_file`` after each iteration (resume: pass it again)."""
-    rj = jax.jit(lambda th: (fun(th), jax.jacfwd(fun)(th)))
-    rf = jax.jit(fun)
+def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, state_file: Path | None = None, progress=None):
+    """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``. Returns (theta, J,
+    r, iterations, converged, history). Progress is saved to ``state_file`` after each iteration
+    (resume: pass it again)."""
     theta = np.asarray(theta0, float)
     lam, history, it0 = 1e-3, [], 0
     if state_file is not None and state_file.is_file():
@@ -230,7 +232,9 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
     for k in range(2):
         sigma = jnp.asarray(problem.sigma)
         state = None if state_dir is None else state_dir / f"lm_state_pass{k}.json"
-        theta, J, r, it, converged, hist = levenberg_marquardt(lambda th: problem.residual(th, sigma), theta, max_iter, state_file=state, progress=progress)
+        theta, J, r, it, converged, hist = levenberg_marquardt(
+            lambda th: problem.residual_jit(th, sigma), lambda th: problem.residual_and_jacobian(th, sigma), theta, max_iter, state_file=state, progress=progress
+        )
         total_it += it
         history += hist
         res = r.reshape(-1, 3) * problem.sigma
