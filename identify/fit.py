@@ -159,7 +159,7 @@ def _covariance(J):
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
 
 
-def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, state_file: Path | None = None, progress=None):
+def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, state_file: Path | None = None, progress=None, max_step=0.5):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``. Returns (theta, J,
     r, iterations, converged, history). Progress is saved to ``state_file`` after each iteration
     (resume: pass it again)."""
@@ -181,6 +181,9 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
         accepted = False
         for _ in range(12):
             step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A))), -g)
+            big = np.max(np.abs(step))
+            if big > max_step:  # unknowns are O(1) (logs, typical units): a trust region on each
+                step = step * (max_step / big)
             r_t = np.asarray(rf(jnp.asarray(theta + step)))
             cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
             if cost_t < cost:
