@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT.parent))
 
 import pcrjax  # noqa: E402
 from identify import camera, experiment  # noqa: E402
-from identify.recording import Recording, load_recording, write_recording  # noqa: E402
+from identify.recording import OVERRIDES, Recording, load_recording, write_recording  # noqa: E402
 
 SOLVER_TRISKELE = dict(nodes=10, integrator="rk4", dt=5e-4, alpha=-0.45, tol=1e-10)
 # Oscillations of the 90-160 Hz platform modes decay within about a second: zeta = omega tau / 2
@@ -86,7 +86,7 @@ SENSOR = ("noise_position", "noise_angle", "missing_fraction", "seed")
 def sidecar(name: str, spec: dict) -> dict:
     side = dict(scene=spec["scene"], experiment=spec["experiment"], frame_rate=spec["frame_rate"], exposure=spec["exposure"],
                 synthetic=True, description=spec["description"])
-    for table in ("solver", "effects", "rod", "actuation", "load", "tip"):
+    for table in OVERRIDES:
         if table in spec:
             side[table] = dict(spec[table])
     side["solver"]["duration"] = spec["seconds"] + 0.05
@@ -102,7 +102,7 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
     t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
     rec = Recording(path=out_dir / f"{name}.csv", t=t_frames, pose=np.zeros((t_frames.size, 3)), scene=spec["scene"],
                     experiment=spec["experiment"], frame_rate=spec["frame_rate"], exposure=spec["exposure"], synthetic=True,
-                    overrides={k: side[k] for k in ("solver", "effects", "rod", "actuation", "load", "tip") if k in side}, truth=truth)
+                    overrides={k: side[k] for k in OVERRIDES if k in side}, truth=truth)
     scene = experiment.build_scene(rec)
     params = {k: jnp.asarray(v, jnp.float64) for k, v in truth.items() if k not in SENSOR}
     s = experiment.apply(scene, params)

@@ -76,17 +76,15 @@ def _plots(out: Path, rec, seen, result):
 
 
 def run(args) -> dict:
-    import jax.numpy as jnp
-
     from .fit import Problem, fit
     from .recording import load_recording
 
+    if args.tau0 is not None and not args.tau0 > 0:
+        raise ValueError(f"--tau0 must be positive, got {args.tau0}")
     rec = load_recording(args.recording)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     init = {} if args.tau0 is None else {"tau": args.tau0}
-    if args.tau0 is not None and not args.tau0 > 0:
-        raise ValueError(f"--tau0 must be positive, got {args.tau0}")
     print(f"{rec.path}: {rec.frames} frames over {rec.t[-1] - rec.t[0]:.3g} s ({100 * rec.missing_fraction():.1f} % missing); building the model ...", flush=True)
     problem = Problem(rec, tuple(f.strip() for f in args.fit.split(",") if f.strip()), scene=None if args.scene is None else _scene(rec, args.scene), initial=init)
     print(f"fitting {', '.join(problem.labels())}", flush=True)
@@ -95,7 +93,7 @@ def run(args) -> dict:
         print(f"  iteration {it:3d}: loss {cost:.6g}, largest step {step:.3g}", flush=True)
 
     result = fit(problem, max_iter=args.max_iter, state_dir=out, progress=progress)
-    seen = np.asarray(problem.predict_values(problem.to_values(jnp.asarray(problem.to_theta({**problem.initial_values, **_as_arrays(result.values)})))))
+    seen = np.asarray(problem.seen(problem.to_theta(_as_arrays(result.values))))
     payload = dict(recording=str(rec.path), fit=problem.fit, **result.to_json())
     (out / "fit.json").write_text(json.dumps(payload, indent=2))
     _plots(out, rec, seen, result)

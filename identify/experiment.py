@@ -16,8 +16,6 @@ and returns what the camera would have recorded at the recording's frame times.
 
 from __future__ import annotations
 
-import tomllib
-from importlib import resources
 from pathlib import Path
 
 import equinox as eqx
@@ -25,7 +23,7 @@ import jax.numpy as jnp
 
 import pcrjax
 from pcrjax.rod import TauDamping
-from pcrjax.scene import SceneError, scene_from_dict
+from pcrjax.scene import SceneError, read_toml, scene_from_dict, scene_path
 
 from . import camera
 from .recording import Recording, RecordingError
@@ -34,15 +32,14 @@ CAMERA = ("frame_offset", "frame_rotation", "time_offset")
 
 
 def _scene_file(name_or_path: str, base_dir: Path) -> Path:
+    """A path relative to the sidecar's folder, else whatever `pcrjax.scene.scene_path` finds."""
     p = Path(name_or_path)
     if not p.is_absolute() and (base_dir / p).is_file():
         return base_dir / p
-    if p.is_file():
-        return p
-    shipped = resources.files("pcrjax") / "scenes" / f"{name_or_path}.toml"
-    if not p.suffix and shipped.is_file():
-        return Path(str(shipped))
-    raise RecordingError(f"scene {name_or_path!r}: no such file or shipped scene")
+    try:
+        return scene_path(name_or_path)
+    except SceneError as err:
+        raise RecordingError(f"scene {name_or_path!r}: {err}") from None
 
 
 def build_scene(rec: Recording, scene: str | None = None):
@@ -51,7 +48,7 @@ def build_scene(rec: Recording, scene: str | None = None):
     if name is None:
         raise RecordingError(f"{rec.path}: no scene: give --scene or a sidecar with scene = ...")
     path = _scene_file(name, rec.path.parent)
-    data = tomllib.loads(path.read_text())
+    data = read_toml(path, RecordingError)
     for table, values in rec.overrides.items():
         if table == "rod" and "rods" in data:
             data.pop("rods")

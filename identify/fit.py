@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import experiment
+from . import camera, experiment
 from .recording import Recording, RecordingError
 
 PHYSICAL = ("tau", "tau_per_rod", "lengths")
@@ -73,7 +73,7 @@ class Problem:
                 unknowns.append(Unknown("push_moment", 1, False, 1e-4))
         unknowns += [Unknown("frame_offset", 2, False, 1e-3), Unknown("frame_rotation", 1, False, 1e-3), Unknown("time_offset", 1, False, 1e-3)]
         self.unknowns = unknowns
-        self.fixed = {k: v for k, v in nom.items()}
+        self.fixed = dict(nom)
         self.t = jnp.asarray(rec.t)
         self.data = jnp.asarray(rec.pose)
         self.initial_values = self._initial_values(nom, initial or {})
@@ -84,8 +84,7 @@ class Problem:
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
-        vals = {"frame_offset": jnp.zeros(2), "frame_rotation": jnp.zeros(()), "time_offset": jnp.zeros(())}
-        vals.update({k: v for k, v in nom.items()})
+        vals = {"frame_offset": jnp.zeros(2), "frame_rotation": jnp.zeros(()), "time_offset": jnp.zeros(()), **nom}
         if "tau_per_rod" in self.fit:
             vals["tau"] = jnp.broadcast_to(nom["tau"], nom["lengths"].shape) * jnp.ones_like(nom["lengths"])
         elif "tau" in self.fit:
@@ -94,11 +93,10 @@ class Problem:
             vals[k] = jnp.asarray(v, jnp.float64)
         if not any(k in given for k in ("frame_offset", "frame_rotation")):
             # The first frame fixes the frame transform up to the model's start: compare it with
-            # the model's initial pose at the initial values.
-            pred = self.predict_values(vals)
-            vals["frame_rotation"] = self.data[0, 2] - pred[0, 2]
-            pred = self.predict_values(vals)
-            vals["frame_offset"] = self.data[0, :2] - pred[0, :2]
+            # the model's first frame in the robot frame (one rollout, identity transform).
+            robot = self.predict_values(vals)[:1]
+            vals["frame_rotation"] = self.data[0, 2] - robot[0, 2]
+            vals["frame_offset"] = self.data[0, :2] - camera.to_camera(robot, jnp.zeros(2), vals["frame_rotation"])[0, :2]
         return vals
 
     def to_theta(self, vals) -> jnp.ndarray:
@@ -128,6 +126,11 @@ class Problem:
     def predict_values(self, vals):
         seen, _ = experiment.predict(self.scene, vals, self.t, self.rec.exposure)
         return seen
+
+    def seen(self, theta):
+        """Camera poses (M, 3) at ``theta``, through the compiled residual (no new compilation)."""
+        sigma = jnp.asarray(self.sigma)
+        return self.data + self.residual_jit(jnp.asarray(theta), sigma).reshape(-1, 3) * sigma
 
     def residual(self, theta, sigma):
         vals = self.to_values(theta)

@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
+from pcrjax.scene import read_toml
 from pcrjax.signals import TableError, read_table
 
 COLUMNS = ("t_s", "x_m", "y_m", "theta_rad")
@@ -88,12 +88,7 @@ def _number(p, key, v, positive=False):
 def read_sidecar(path) -> dict:
     """Parse and validate a sidecar TOML (see module doc)."""
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise RecordingError(f"{p}: malformed TOML: {e}") from None
-    except UnicodeDecodeError:
-        raise RecordingError(f"{p}: not a text file") from None
+    data = read_toml(p, RecordingError)
     unknown = sorted(set(data) - SIDECAR_KEYS)
     if unknown:
         raise RecordingError(f"{p}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(SIDECAR_KEYS))})")

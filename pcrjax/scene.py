@@ -388,8 +388,8 @@ def with_solver(scene: Scene, **changes) -> Scene:
     return dataclasses.replace(scene, solver=make_solver(rod, **cur))
 
 
-def load_scene(path) -> Scene:
-    """Read and validate a scene TOML file (a path, or the name of a shipped scene)."""
+def scene_path(path) -> Path:
+    """The TOML file of ``path``: a path, or the name of a shipped scene (raises `SceneError`)."""
     p = Path(path)
     if not p.exists() and not p.suffix:
         shipped = resources.files("pcrjax") / "scenes" / f"{path}.toml"
@@ -397,13 +397,23 @@ def load_scene(path) -> Scene:
             p = Path(str(shipped))
     if not p.exists():
         raise SceneError(f"{path}: no such file (shipped scenes: {', '.join(shipped_scenes())})")
+    return p
+
+
+def read_toml(p: Path, error: type[Exception] = SceneError) -> dict:
+    """Parse the TOML file ``p``; a malformed or binary file raises ``error`` naming it."""
     try:
-        data = tomllib.loads(p.read_text())
+        return tomllib.loads(p.read_text())
     except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{p}: malformed TOML: {e}") from None
+        raise error(f"{p}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
-        raise SceneError(f"{p}: not a text file") from None
-    return scene_from_dict(data, str(p))
+        raise error(f"{p}: not a text file") from None
+
+
+def load_scene(path) -> Scene:
+    """Read and validate a scene TOML file (a path, or the name of a shipped scene)."""
+    p = scene_path(path)
+    return scene_from_dict(read_toml(p), str(p))
 
 
 def shipped_scenes() -> list[str]:
