@@ -203,6 +203,30 @@ def _advance(scene, state, i0, count: int):
     return _scan_steps(scene, state, i0, count)
 
 
+_COMPILED: dict = {}
+
+
+def _signature(tree):
+    """Hashable abstract signature of a pytree: structure, array shapes and dtypes, other leaves' values."""
+    leaves, treedef = jax.tree.flatten(tree)
+    sig = tuple((np.shape(x), str(jnp.result_type(x)), getattr(x, "weak_type", False)) if eqx.is_array(x) else x for x in leaves)
+    return treedef, sig
+
+
+def _compiled_advance(scene, state, chunk: int):
+    """``_advance`` lowered and compiled once per process for each abstract signature (calls to
+    ``simulate`` that differ only in numbers, e.g. alpha or dt, reuse it; ``lower().compile()``
+    alone would compile again every time)."""
+    try:
+        key = (_signature((scene, state)), chunk)
+        hash(key)
+    except TypeError:  # an unhashable static leaf: compile without caching
+        return _advance.lower(scene, state, jnp.asarray(0), chunk).compile()
+    if key not in _COMPILED:
+        _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk).compile()
+    return _COMPILED[key]
+
+
 @eqx.filter_jit
 def _finish(scene, static, state0, outs, steps: int):
     return _assemble(scene, static, state0, outs, steps)
@@ -254,7 +278,7 @@ def simulate(
     if not static_res <= scene.solver.newton.tol:
         raise ConvergenceError(f"initial static equilibrium did not converge: scaled residual {float(static_res):.3e}", 0.0, float(static_res))
     # Compile the chunk once (lower+compile), so run time excludes compilation.
-    compiled = _advance.lower(scene, state, jnp.asarray(0), chunk).compile()
+    compiled = _compiled_advance(scene, state, chunk)
     compile_s = time.perf_counter() - t_c0
     bar = None
     if progress is True:
