@@ -7,6 +7,7 @@ mode (`jax.grad`) for the tau-damped rollout, forward mode (`jax.jacfwd`) for th
 import equinox as eqx
 import jax
 import numpy as np
+import pytest
 from helpers import rod_scene
 
 import pcrjax
@@ -80,6 +81,7 @@ def test_rollout_gradient_after_50_steps_length_E_tau():
         _check(g[k], _central(f, params, k), k)
 
 
+@pytest.mark.slow  # ~1 min cold; reverse-mode rollout gradients stay in the default run
 def test_rollout_jacfwd_after_50_steps_bbt():
     scene = _dyn_scene({"bse": [1e-2, 1e-2, 5e-2], "bbt": [2e-5, 2e-5, 1e-5]})
     assert isinstance(scene.rod.damping, DiagonalDamping)
