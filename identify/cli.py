@@ -89,8 +89,8 @@ def run(args) -> dict:
     problem = Problem(rec, tuple(f.strip() for f in args.fit.split(",") if f.strip()), scene=None if args.scene is None else _scene(rec, args.scene), initial=init)
     print(f"fitting {', '.join(problem.labels())}", flush=True)
 
-    def progress(it, cost, step):
-        print(f"  iteration {it:3d}: loss {cost:.6g}, largest step {step:.3g}", flush=True)
+    def progress(stage, it, cost, step):
+        print(f"  {stage}: iteration {it:3d}: loss {cost:.6g}, largest step {step:.3g}", flush=True)
 
     result = fit(problem, max_iter=args.max_iter, state_dir=out, progress=progress)
     seen = np.asarray(problem.seen(problem.to_theta(_as_arrays(result.values))))
@@ -101,8 +101,7 @@ def run(args) -> dict:
         print(f"{name:>15} = {v}  ± {result.standard_errors[name]}")
     print(f"loss (reduced chi-square) {result.loss:.4g}, noise {result.sigma[0]:.3g} m, {result.sigma[1]:.3g} rad; "
           f"{result.iterations} iterations, {result.wall_s:.1f} s; {'converged' if result.converged else 'NOT converged'}")
-    for k in sorted(out.glob("lm_state_pass*.json")):
-        k.unlink()  # done: a new run starts afresh
+    (out / "fit_state.json").unlink(missing_ok=True)  # done: a new run starts afresh
     return payload
 
 

@@ -118,6 +118,18 @@ def predict(scene, params: dict, frame_times, exposure):
     return seen, traj
 
 
+def forcing_end(scene) -> float:
+    """Time (s) after which nothing drives the robot (free motion): the end of the actuators'
+    moves (tables: their last time), else 0 (a push released at t = 0, or nothing)."""
+    if is_rod(scene):
+        return 0.0
+    a = scene.actuation
+    if a.table_t is not None:
+        return float(a.table_t[-1])
+    ends = [float(a.start[i] + (a.duration[i] if k not in ("constant", "step") else 0.0)) for i, k in enumerate(a.kinds) if k != "constant"]
+    return max(ends, default=0.0)
+
+
 def required_duration(rec: Recording, margin: float = 0.02) -> float:
     """Simulated seconds that cover every frame, allowing for a time offset of ``margin``."""
     return float(rec.t[-1]) + rec.exposure + margin

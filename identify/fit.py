@@ -31,10 +31,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import camera, experiment
+import pcrjax
+
+from . import camera, experiment, modes
 from .recording import Recording, RecordingError
 
 PHYSICAL = ("tau", "tau_per_rod", "lengths")
+# The camera's unknowns: where it sees the robot's pose at t = 0 (the static equilibrium the
+# motion starts from) and its clock offset. The pattern frame (offset, rotation) follows from the
+# start pose and the model's own pose at t = 0 (`frame_transform`): a rod length that moves the
+# robot's rest pose by a millimetre then needs no compensating change of a frame unknown, a
+# valley of the loss 10^4 times narrower than it is long that Levenberg-Marquardt could not follow.
+CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time_offset", 1, 1e-3))
+CAMERA = tuple(c[0] for c in CAMERA_UNKNOWNS)
+
+
+def frame_transform(robot_start, vals):
+    """(offset (2,), rotation) of the pattern frame that shows the robot's planar pose at t = 0,
+    ``robot_start`` (3,), at ``vals["start_position"]``, ``vals["start_angle"]``."""
+    rotation = vals["start_angle"] - robot_start[2]
+    rotated = camera.to_camera(robot_start[None], jnp.zeros(2), rotation)[0, :2]
+    return vals["start_position"] - rotated, rotation
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,7 +63,14 @@ class Unknown:
 
 
 class Problem:
-    """The fit of one recording: unknowns, residual function and bookkeeping."""
+    """The fit of one recording: unknowns, residual function and bookkeeping.
+
+    The unknowns are ordered physical first (they need tangents through the rollout), camera
+    last (they act on the simulated motion only, so their Jacobian columns cost no rollout).
+    Residuals and Jacobians take a window, the end time of the frames that count: later frames
+    get zero residuals and the rollout stops after the steps they need (`pcrjax.rollout`'s
+    ``active_steps``), so every window runs through the same two compiled programs.
+    """
 
     def __init__(self, rec: Recording, fit: tuple[str, ...], scene=None, initial: dict | None = None):
         unknown_fit = [f for f in fit if f not in PHYSICAL]
@@ -71,32 +95,29 @@ class Problem:
             unknowns.append(Unknown("push_force", 2, False, 1e-3))
             if not experiment.is_rod(self.scene):
                 unknowns.append(Unknown("push_moment", 1, False, 1e-4))
-        unknowns += [Unknown("frame_offset", 2, False, 1e-3), Unknown("frame_rotation", 1, False, 1e-3), Unknown("time_offset", 1, False, 1e-3)]
+        unknowns += [Unknown(n, k, False, unit) for n, k, unit in CAMERA_UNKNOWNS]
         self.unknowns = unknowns
+        self.n_physical = sum(u.size for u in unknowns if u.name not in CAMERA)
         self.fixed = dict(nom)
         self.t = jnp.asarray(rec.t)
         self.data = jnp.asarray(rec.pose)
-        self.initial_values = self._initial_values(nom, initial or {})
         self.sigma = np.array([1e-9, 1e-9, 1e-6])  # replaced by estimates after the first pass
-        # compiled once per problem (sigma is an argument, so the second pass reuses them)
-        self.residual_jit = jax.jit(self.residual)
-        self.residual_and_jacobian = jax.jit(lambda th, sg: (self.residual(th, sg), jax.jacfwd(self.residual)(th, sg)))
+        # compiled once per problem: sigma and the window are arguments
+        self._residual = jax.jit(self._residual_fn)
+        self._residual_and_jacobian = jax.jit(self._residual_and_jacobian_fn)
+        self.initial_values = self._initial_values(nom, initial or {})
+        self.last_start = None  # (motion[0], its tangents) at the last Jacobian: the frame's errors
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
-        vals = {"frame_offset": jnp.zeros(2), "frame_rotation": jnp.zeros(()), "time_offset": jnp.zeros(()), **nom}
+        # the robot at t = 0 is seen where the first frame saw it (up to the first frame's delay)
+        vals = {"start_position": self.data[0, :2], "start_angle": self.data[0, 2], "time_offset": jnp.zeros(()), **nom}
         if "tau_per_rod" in self.fit:
             vals["tau"] = jnp.broadcast_to(nom["tau"], nom["lengths"].shape) * jnp.ones_like(nom["lengths"])
         elif "tau" in self.fit:
             vals["tau"] = jnp.mean(nom["tau"])
         for k, v in given.items():
             vals[k] = jnp.asarray(v, jnp.float64)
-        if not any(k in given for k in ("frame_offset", "frame_rotation")):
-            # The first frame fixes the frame transform up to the model's start: compare it with
-            # the model's first frame in the robot frame (one rollout, identity transform).
-            robot = self.predict_values(vals)[:1]
-            vals["frame_rotation"] = self.data[0, 2] - robot[0, 2]
-            vals["frame_offset"] = self.data[0, :2] - camera.to_camera(robot, jnp.zeros(2), vals["frame_rotation"])[0, :2]
         return vals
 
     def to_theta(self, vals) -> jnp.ndarray:
@@ -123,18 +144,84 @@ class Problem:
         return out
 
     # -- model --------------------------------------------------------------------------------
-    def predict_values(self, vals):
-        seen, _ = experiment.predict(self.scene, vals, self.t, self.rec.exposure)
-        return seen
+    def window(self, t_end: float | None = None):
+        """(frames counted, rollout steps needed) for the frames up to ``t_end`` (all: None)."""
+        n = self.t.size if t_end is None else int(np.searchsorted(np.asarray(self.t), t_end, side="right"))
+        n = max(n, 1)
+        dt, steps = self.scene.solver.dt, self.scene.solver.steps
+        need = float(self.t[n - 1]) + self.rec.exposure + 0.02  # time offsets up to 20 ms
+        return jnp.asarray(n, jnp.int32), jnp.asarray(min(steps, int(math.ceil(need / dt)) + 3), jnp.int32)
 
-    def seen(self, theta):
-        """Camera poses (M, 3) at ``theta``, through the compiled residual (no new compilation)."""
+    def _split(self, theta):
+        return theta[: self.n_physical], theta[self.n_physical :]
+
+    def _motion(self, theta_phys, theta_cam, active):
+        """Simulated planar poses (T, 3), sampled every dt (zeros after ``active`` steps)."""
+        vals = self.to_values(jnp.concatenate([theta_phys, theta_cam]))
+        s = experiment.apply(self.scene, vals)
+        return experiment.planar_pose(s, pcrjax.rollout(s, active))
+
+    def _observe(self, motion, theta_phys, theta_cam):
+        vals = self.to_values(jnp.concatenate([theta_phys, theta_cam]))
+        offset, rotation = frame_transform(motion[0], vals)
+        return camera.observe(motion, self.scene.solver.dt, self.t, self.rec.exposure, offset, rotation, vals["time_offset"])
+
+    def _weights(self, sigma, n_frames):
+        w = (jnp.arange(self.t.size) < n_frames).astype(jnp.float64)
+        return w[:, None] / sigma[None, :]
+
+    def _residual_fn(self, theta, sigma, n_frames, active):
+        tp, tc = self._split(theta)
+        motion = self._motion(tp, tc, active)
+        seen = self._observe(motion, tp, tc)
+        return ((seen - self.data) * self._weights(sigma, n_frames)).reshape(-1), motion
+
+    def _residual_and_jacobian_fn(self, theta, sigma, n_frames, active):
+        tp, tc = self._split(theta)
+        w = self._weights(sigma, n_frames)
+        # tangents of the motion for the physical unknowns only
+        motion, dmotion = jax.vmap(lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,)), out_axes=(None, -1))(jnp.eye(tp.size))
+        seen = self._observe(motion, tp, tc)
+        # the camera is linear in the motion: push each tangent through it
+        d_seen = jax.vmap(lambda dm: jax.jvp(lambda m: self._observe(m, tp, tc), (motion,), (dm,))[1], in_axes=-1, out_axes=-1)(dmotion)
+        j_cam = jax.jacfwd(lambda c: self._observe(motion, tp, c))(tc)
+        J = jnp.concatenate([d_seen, j_cam], axis=-1) * w[..., None]
+        return ((seen - self.data) * w).reshape(-1), J.reshape(-1, theta.size), motion[0], dmotion[0]
+
+    def residual(self, theta, sigma=None, t_end=None):
+        sigma = jnp.asarray(self.sigma if sigma is None else sigma)
+        return self._residual(jnp.asarray(theta), sigma, *self.window(t_end))[0]
+
+    def motion(self, theta, t_end):
+        """Simulated planar poses (robot frame) every dt up to ``t_end`` (same compiled program)."""
+        m = self._residual(jnp.asarray(theta), jnp.asarray(self.sigma), *self.window(t_end))[1]
+        return np.asarray(m)[: int(round(t_end / self.scene.solver.dt)) + 1]
+
+    def residual_and_jacobian(self, theta, sigma=None, t_end=None):
+        sigma = jnp.asarray(self.sigma if sigma is None else sigma)
+        r, J, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), sigma, *self.window(t_end))
+        self.last_start = (np.asarray(m0), np.asarray(dm0))
+        return r, J
+
+    def frame(self, theta):
+        """(values, Jacobian wrt theta) of the pattern frame's offset (2) and rotation (1), derived
+        from the start pose and the model's pose at t = 0 (of the last Jacobian's evaluation)."""
+        m0, dm0 = self.last_start
+        n = self.n_physical
+
+        def f(m0_, tc):
+            vals = self.to_values(jnp.concatenate([jnp.asarray(theta[:n]), tc]))
+            off, rot = frame_transform(m0_, vals)
+            return jnp.concatenate([off, rot[None]])
+
+        tc = jnp.asarray(theta[n:])
+        d_m0, d_tc = jax.jacfwd(f, argnums=(0, 1))(jnp.asarray(m0), tc)
+        return np.asarray(f(jnp.asarray(m0), tc)), np.concatenate([np.asarray(d_m0) @ dm0, np.asarray(d_tc)], axis=1)
+
+    def seen(self, theta, t_end=None):
+        """Camera poses (M, 3) at ``theta`` (frames after ``t_end``: the recording's own)."""
         sigma = jnp.asarray(self.sigma)
-        return self.data + self.residual_jit(jnp.asarray(theta), sigma).reshape(-1, 3) * sigma
-
-    def residual(self, theta, sigma):
-        vals = self.to_values(theta)
-        return ((self.predict_values(vals) - self.data) / sigma).reshape(-1)
+        return self.data + self.residual(theta, sigma, t_end).reshape(-1, 3) * sigma
 
 
 @dataclasses.dataclass
@@ -149,7 +236,8 @@ class Result:
     iterations: int
     wall_s: float
     converged: bool
-    history: list  # loss per iteration
+    history: list  # loss per iteration (all stages)
+    stages: list = dataclasses.field(default_factory=list)  # per stage: window, iterations, final loss
     message: str = ""
 
     def to_json(self) -> dict:
@@ -162,16 +250,17 @@ def _covariance(J):
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
 
 
-def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, state_file: Path | None = None, progress=None, max_step=0.5):
-    """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``. Returns (theta, J,
-    r, iterations, converged, history). Progress is saved to ``state_file`` after each iteration
-    (resume: pass it again)."""
+def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, max_step=0.5, start: dict | None = None, save=None, progress=None):
+    """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
+
+    Steps are bounded to ``max_step`` in every unknown (they are O(1): logs and typical units), a
+    trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
+    state that ``save`` was given) resumes an interrupted run; ``save(state)`` is called after
+    every accepted step. Returns (theta, J, r, iterations, converged, history)."""
     theta = np.asarray(theta0, float)
     lam, history, it0 = 1e-3, [], 0
-    if state_file is not None and state_file.is_file():
-        st = json.loads(state_file.read_text())
-        if len(st["theta"]) == theta.size:
-            theta, lam, history, it0 = np.asarray(st["theta"]), st["lam"], st["history"], st["iteration"]
+    if start is not None:
+        theta, lam, history, it0 = np.asarray(start["theta"], float), start["lam"], list(start["history"]), start["iteration"]
     r, J = (np.asarray(a) for a in rj(jnp.asarray(theta)))
     cost = 0.5 * float(r @ r)
     if not history:
@@ -184,9 +273,9 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
         accepted = False
         for _ in range(12):
             step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A))), -g)
-            big = np.max(np.abs(step))
-            if big > max_step:  # unknowns are O(1) (logs, typical units): a trust region on each
-                step = step * (max_step / big)
+            while np.max(np.abs(step)) > max_step:  # raise the damping until the step fits the region
+                lam *= 4.0
+                step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A))), -g)
             r_t = np.asarray(rf(jnp.asarray(theta + step)))
             cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
             if cost_t < cost:
@@ -194,6 +283,8 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
                 break
             lam *= 10.0
         if not accepted:
+            converged = True  # no decrease along any damped step: a minimum to the precision of the model
+            it -= 1
             break
         rel = (cost - cost_t) / max(cost, 1e-300)
         theta = theta + step
@@ -201,8 +292,8 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
         r, J = (np.asarray(a) for a in rj(jnp.asarray(theta)))
         cost = 0.5 * float(r @ r)
         history.append(cost)
-        if state_file is not None:
-            state_file.write_text(json.dumps(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it)))
+        if save is not None:
+            save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it))
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
         if rel < ftol or np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta))):
@@ -230,22 +321,124 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
     return np.asarray(theta), history
 
 
-def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=None) -> Result:
-    """Two LM passes (the second with noise levels estimated from the first's residuals)."""
+def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, horizon: float = 0.4, screen_window: float = 0.2, screen_iter: int = 8):
+    """Start values of damping and lengths from the recording's modes (`modes`).
+
+    The damping time comes from the decay of the recorded modes. Lengths: Newton on the model's
+    lowest frequencies (one per rod) until they equal the recording's, from the nominal lengths and
+    from six starts ``spread`` away (each rod in turn longer, then shorter; frequencies alone do
+    not determine lengths: several sets of lengths share them). Each distinct solution is screened
+    by a short Levenberg-Marquardt fit of the first ``screen_window`` seconds, which mode shapes and
+    amplitudes decide; the best is returned. ``progress(stage, i, loss, 0)``."""
+    theta = np.array(theta, float)
+    names = [u.name for u in problem.unknowns]
+    t_from = experiment.forcing_end(problem.scene)
+    lengths_fitted = "lengths" in names
+    n_rods = next((u.size for u in problem.unknowns if u.name == "lengths"), 1)
+    target, tau0 = modes.recorded_modes(problem.rec, t_from)
+    target = target[:n_rods]
+    i_tau = _index(problem, "tau")
+    if i_tau is not None:
+        theta[i_tau] = np.log(tau0)
+    if not lengths_fitted:
+        return theta
+    i_len = _index(problem, "lengths")
+    dt = problem.scene.solver.dt
+    k0 = int(round(t_from / dt))
+
+    def freqs_of(x):
+        th = theta.copy()
+        th[i_len] = x
+        return modes.simulated_frequencies(problem.motion(th, t_from + horizon)[k0:], dt, n_rods)
+
+    x0 = theta[i_len]
+    starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
+    found = []
+    for x in starts:
+        x, ok = modes.match_frequencies(freqs_of, x, target)
+        if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
+            found.append(x)
+    if not found:
+        raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded modes ({', '.join(f'{f:.2f}' for f in target)} Hz)")
+    best, best_cost = None, np.inf
+    for j, x in enumerate(found):
+        th = theta.copy()
+        th[i_len] = x
+        th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, screen_window), lambda a: problem.residual_and_jacobian(a, None, screen_window), th, screen_iter, ftol=1e-6)
+        if progress is not None:
+            progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm", j + 1, hist[-1], 0.0)
+        if hist[-1] < best_cost:
+            best, best_cost = th, hist[-1]
+    return best
+
+
+def _index(problem, name):
+    i = 0
+    for u in problem.unknowns:
+        if u.name == name:
+            return slice(i, i + u.size) if u.size > 1 else i
+        i += u.size
+    return None
+
+
+def windows(duration: float, first: float = 0.1) -> list:
+    """Window end times of the continuation: ``first``, doubling, then the whole recording (None)."""
+    out, w = [], first
+    while w < 0.75 * duration:
+        out.append(w)
+        w *= 2.0
+    return out + [None]
+
+
+def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=None, first_window: float = 0.1, modal: bool = True) -> Result:
+    """Fit by continuation in the recording's length, then once more with estimated noise levels.
+
+    A frequency error wraps the phase of an oscillation, so over a whole recording the loss has
+    a minimum every cycle; over its first ``first_window`` seconds it has one. Each window (that
+    length, doubling up to the whole recording) starts from the previous window's optimum. The
+    whole recording is fitted twice: with the nominal noise scales, then with noise levels
+    estimated from the first pass's residuals (feasible generalised least squares). Progress is
+    saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
+    same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
+    """
     t0 = time.perf_counter()
+    duration = float(problem.t[-1] - problem.t[0])
+    stages = [(f"window {w:g} s", w) for w in windows(duration, first_window)[:-1]] + [("whole recording", None), ("whole recording, noise re-estimated", None)]
+    state_file = None if state_dir is None else Path(state_dir) / "fit_state.json"
     theta = np.asarray(problem.to_theta(problem.initial_values))
-    total_it, history, converged = 0, [], False
-    for k in range(2):
+    if modal:
+        theta = modal_start(problem, theta, progress)
+    done, history, total_it, resume = 0, [], 0, None
+    if state_file is not None and state_file.is_file():
+        st = json.loads(state_file.read_text())
+        if st.get("labels") == problem.labels() and st.get("recording") == str(problem.rec.path):
+            done, history, total_it, resume = st["stage"], st["history_before"], st["iterations_before"], st["lm"]
+            theta, problem.sigma = np.asarray(st["lm"]["theta"]), np.asarray(st["sigma"])
+    summary = []
+    for k, (label, t_end) in enumerate(stages):
+        if k < done:
+            continue
+        if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
+            res = np.asarray(problem.residual(theta)).reshape(-1, 3) * problem.sigma
+            problem.sigma = np.maximum([np.sqrt(np.mean(res[:, :2] ** 2))] * 2 + [np.sqrt(np.mean(res[:, 2] ** 2))], 1e-15)
         sigma = jnp.asarray(problem.sigma)
-        state = None if state_dir is None else state_dir / f"lm_state_pass{k}.json"
+        final = t_end is None
+
+        def save(lm_state, k=k):
+            if state_file is not None:
+                state_file.write_text(json.dumps(dict(recording=str(problem.rec.path), labels=problem.labels(), stage=k, sigma=list(map(float, problem.sigma)),
+                                                      history_before=history, iterations_before=total_it, lm=lm_state)))
+
         theta, J, r, it, converged, hist = levenberg_marquardt(
-            lambda th: problem.residual_jit(th, sigma), lambda th: problem.residual_and_jacobian(th, sigma), theta, max_iter, state_file=state, progress=progress
+            lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
+            max_iter, ftol=1e-10 if final else 1e-6, start=resume if k == done else None, save=save,
+            progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
         )
+        resume = None
         total_it += it
         history += hist
-        res = r.reshape(-1, 3) * problem.sigma
-        problem.sigma = np.array([np.sqrt(np.mean(res[:, :2] ** 2)), np.sqrt(np.mean(res[:, :2] ** 2)), np.sqrt(np.mean(res[:, 2] ** 2))])
-        problem.sigma = np.maximum(problem.sigma, [1e-15, 1e-15, 1e-15])
+        summary.append(dict(stage=label, iterations=it, loss=hist[-1], converged=bool(converged)))
+        save(dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0), k + 1)
     m, p = r.size, theta.size
     chi2 = float(r @ r) / max(m - p, 1)
     cov = _covariance(J) * chi2
@@ -260,6 +453,10 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
         values[u.name] = v.tolist() if u.size > 1 else float(v[0])
         errors[u.name] = s.tolist() if u.size > 1 else float(s[0])
         i += u.size
+    frame, G = problem.frame(theta)  # the pattern frame, derived: errors by the delta method
+    frame_se = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
+    values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
+    errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
     res = r.reshape(-1, 3) * problem.sigma
     return Result(
         labels=problem.labels(),
@@ -273,4 +470,5 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
         wall_s=time.perf_counter() - t0,
         converged=bool(converged),
         history=history,
+        stages=summary,
     )

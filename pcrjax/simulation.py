@@ -137,10 +137,10 @@ def _initial(scene):
     return static, m.initial_step_state(scene, static)
 
 
-def _scan_steps(scene, state, i0, count: int):
+def _scan_steps(scene, state, i0, count: int, active=None):
     par = _is_parallel(scene)
 
-    def body(st, i):
+    def advance(st, i):
         t = (i0 + i + 1) * scene.solver.dt
         if par:
             st, out = parallel.step(scene, st, t)
@@ -149,7 +149,14 @@ def _scan_steps(scene, state, i0, count: int):
         nan = jnp.full((), jnp.nan)
         return st, (out.tip_position, rotation_vector(out.tip_rotation), out.positions, out.stats, jnp.zeros(0), nan)
 
-    return jax.lax.scan(body, state, jnp.arange(count))
+    if active is None:
+        return jax.lax.scan(advance, state, jnp.arange(count))
+    out_shape = jax.eval_shape(advance, state, jnp.zeros((), jnp.int32))[1]
+
+    def hold(st, i):  # past the active steps: state kept, zero outputs, no solve
+        return st, jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), out_shape)
+
+    return jax.lax.scan(lambda st, i: jax.lax.cond(i < active, advance, hold, st, i), state, jnp.arange(count))
 
 
 def _assemble(scene, static, state0, outs, steps):
@@ -180,8 +187,12 @@ def _assemble(scene, static, state0, outs, steps):
     )
 
 
-def rollout(scene) -> Trajectory:
+def rollout(scene, active_steps=None) -> Trajectory:
     """Simulate ``scene.solver.steps`` steps from rest at the static equilibrium; pure function.
+
+    ``active_steps`` (an integer, may be traced): simulate only the first ``active_steps`` steps;
+    the later entries of the trajectory are zeros and cost no solve. One compiled program then
+    serves every shorter horizon (a fit that lengthens its window step by step).
 
     No convergence check is raised here (it cannot be, under `jit`/`grad`): inspect
     ``.converged`` or use `simulate`.
@@ -189,7 +200,7 @@ def rollout(scene) -> Trajectory:
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use solve_static")
     static, state = _initial(scene)
-    _, outs = _scan_steps(scene, state, 0, scene.solver.steps)
+    _, outs = _scan_steps(scene, state, 0, scene.solver.steps, active_steps)
     return _assemble(scene, static, state, outs, scene.solver.steps)
 
 

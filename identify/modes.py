@@ -1,0 +1,105 @@
+r"""Modal initialisation: the damped modes a recording shows, and model parameters that show the same.
+
+An oscillating recording's loss has a minimum every cycle of phase error, so a fit started from
+nominal rod lengths (a few percent off, which moves the 90-160 Hz platform modes by a few Hz)
+lands in a wrong minimum. The poles of the motion (frequency and decay of each mode) do not
+depend on the phase, the amplitude, the push or the camera's frame and clock: they depend on
+the damping and the lengths only. So the fit first moves those until the model's poles match the
+recording's, and starts the time-domain fit from there (`fit.fit`).
+
+**Poles** by the matrix-pencil method (Hua & Sarkar 1990) on the three columns together: windows
+of ``L`` consecutive frames (those with a missing frame are skipped, so decoding gaps do no
+harm), the row space truncated to ``order`` by an SVD, and the eigenvalues ``z = exp(s / f_s)``
+of the shift between the truncated windows. Frames alias the modes (Nyquist 57.2 Hz at 114.44
+frames/s), and so do the poles; model and recording are sampled alike, so they alias alike.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+
+def poles(t, pose, frame_rate, order: int, window: int = 12):
+    """Discrete poles (complex, Im >= 0, one per mode; a real pole for the drift to rest) of
+    uniformly sampled frames ``pose`` (M, 3) at times ``t`` with some frames missing."""
+    k = np.rint((np.asarray(t) - t[0]) * frame_rate).astype(int)
+    full = np.full((k[-1] + 1, pose.shape[1]), np.nan)
+    full[k] = pose
+    full = (full - np.nanmean(full, axis=0)) / np.nanstd(full, axis=0)
+    rows = []
+    for c in range(full.shape[1]):
+        for i in range(full.shape[0] - window + 1):
+            w = full[i : i + window, c]
+            if np.all(np.isfinite(w)):
+                rows.append(w)
+    Y = np.asarray(rows)
+    _, _, vt = np.linalg.svd(Y, full_matrices=False)
+    V = vt[:order].T  # (window, order): the signal subspace
+    z = np.linalg.eigvals(np.linalg.pinv(V[:-1]) @ V[1:])
+    return z[np.imag(z) >= -1e-12]
+
+
+def describe(z, frame_rate):
+    """(aliased frequency Hz, decay rate 1/s) of discrete poles ``z``."""
+    s = np.log(z.astype(complex)) * frame_rate
+    return np.abs(np.imag(s)) / (2 * np.pi), -np.real(s)
+
+
+def unalias(freq, decay, frame_rate, folds: int = 4):
+    """Physical frequencies (Hz, sorted) and the damping time ``tau`` that explain aliased modes.
+
+    Each aliased frequency ``f`` could be ``k f_s + f`` or ``(k + 1) f_s - f``. Kelvin-Voigt
+    damping of the rods' strain decays each mode at ``tau omega^2 / 2``, so of all the choices the
+    one whose ``decay / omega^2`` is the most uniform across the modes is taken, and ``tau`` is
+    their geometric mean. (A recording filmed fast enough has ``k = 0`` for every mode.)"""
+    cands = [[c for k in range(folds) for c in (k * frame_rate + f, (k + 1) * frame_rate - f)] for f in freq]
+    best, spread = None, np.inf
+    for choice in itertools.product(*cands):
+        w = 2 * np.pi * np.asarray(choice)
+        s = np.std(np.log(2 * decay / w**2))
+        if s < spread:
+            best, spread = w, s
+    tau = float(np.exp(np.mean(np.log(2 * decay / best**2))))
+    return np.sort(best / (2 * np.pi)), tau
+
+
+def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3):
+    """(physical frequencies Hz, tau) of the ``n_modes`` modes the recording shows after ``t_from``."""
+    keep = rec.t >= t_from
+    z = poles(rec.t[keep], rec.pose[keep], rec.frame_rate, 2 * n_modes + 1)
+    f, d = describe(z, rec.frame_rate)
+    osc = (f > 1e-3 * rec.frame_rate) & (d > 0)
+    if osc.sum() < n_modes:
+        raise ValueError(f"{rec.path}: {osc.sum()} decaying oscillations found after t = {t_from:g} s, {n_modes} needed for the modal initialisation")
+    return unalias(f[osc], d[osc], rec.frame_rate)
+
+
+def simulated_frequencies(motion, dt, n_modes: int, order: int = 9):
+    """The ``n_modes`` lowest frequencies (Hz) of a simulated motion (T, 3) sampled every ``dt``."""
+    f, d = describe(poles(np.arange(motion.shape[0]) * dt, motion, 1.0 / dt, order, 40), 1.0 / dt)
+    f = np.sort(f[(f > 1.0) & (d > -1.0)])
+    return f[:n_modes] if f.size >= n_modes else np.full(n_modes, np.nan)
+
+
+def match_frequencies(freqs_of, x0, target, max_iter: int = 20, max_step: float = 0.01, h: float = 1e-4, tol: float = 1e-4):
+    """Newton on log frequencies: ``x`` (log lengths) such that ``freqs_of(x)`` (sorted, Hz) equals
+    ``target``; finite-difference Jacobian, steps bounded to ``max_step``. Returns (x, converged)."""
+    x = np.asarray(x0, float).copy()
+    for _ in range(max_iter):
+        res = np.log(freqs_of(x) / target)
+        if not np.all(np.isfinite(res)):
+            return x, False
+        if np.max(np.abs(res)) < tol:
+            return x, True
+        J = np.empty((target.size, x.size))
+        for k in range(x.size):
+            e = x.copy()
+            e[k] += h
+            J[:, k] = (np.log(freqs_of(e) / target) - res) / h
+        step = np.linalg.lstsq(J, -res, rcond=None)[0]
+        if not np.all(np.isfinite(step)):
+            return x, False
+        x += step * min(1.0, max_step / max(np.max(np.abs(step)), 1e-300))
+    return x, bool(np.max(np.abs(np.log(freqs_of(x) / target))) < tol)
