@@ -1,4 +1,4 @@
-"""From a recording to a simulation: the scene it belongs to, its parameters, its prediction.
+"""From a recording to a simulation: the scene it belongs to, its parameters, its planar pose.
 
 **Parameters** (a flat dict of float64 arrays, the fit's vocabulary):
 
@@ -10,8 +10,8 @@
 * ``frame_offset`` (m, 2), ``frame_rotation`` (rad), ``time_offset`` (s): the camera (`camera`).
 
 `apply` writes the physical ones into a scene (``eqx.tree_at``; a rod length changes with the
-attachment points held where they are, so the platform settles elsewhere); `predict` simulates
-and returns what the camera would have recorded at the recording's frame times.
+attachment points held where they are, so the platform settles elsewhere); `planar_pose` is
+what the camera (`camera.observe`) films of a trajectory.
 """
 
 from __future__ import annotations
@@ -25,10 +25,7 @@ import pcrjax
 from pcrjax.rod import TauDamping
 from pcrjax.scene import SceneError, read_toml, scene_from_dict, scene_path
 
-from . import camera
 from .recording import Recording, RecordingError
-
-CAMERA = ("frame_offset", "frame_rotation", "time_offset")
 
 
 def _scene_file(name_or_path: str, base_dir: Path) -> Path:
@@ -108,14 +105,6 @@ def planar_pose(scene, traj):
     if is_rod(scene):
         return jnp.stack([traj.position[:, 0], traj.position[:, 2], -traj.rotation_vector[:, 1]], axis=1)
     return jnp.stack([traj.position[:, 0], traj.position[:, 1], traj.rotation_vector[:, 2]], axis=1)
-
-
-def predict(scene, params: dict, frame_times, exposure):
-    """(camera poses at ``frame_times`` (M, 3), trajectory): the recording ``params`` predict."""
-    s = apply(scene, params)
-    traj = pcrjax.rollout(s)
-    seen = camera.observe(planar_pose(s, traj), s.solver.dt, frame_times, exposure, params["frame_offset"], params["frame_rotation"], params["time_offset"])
-    return seen, traj
 
 
 def forcing_end(scene) -> float:

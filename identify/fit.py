@@ -277,11 +277,12 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
         g = J.T @ r
         A = J.T @ J
         accepted = False
+        scale = np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
         for _ in range(12):
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A))), -g)
+            step = np.linalg.solve(A + lam * scale, -g)
             while np.max(np.abs(step)) > max_step:  # raise the damping until the step fits the region
                 lam *= 4.0
-                step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A))), -g)
+                step = np.linalg.solve(A + lam * scale, -g)
             r_t = np.asarray(rf(jnp.asarray(theta + step)))
             cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
             if cost_t < cost:
