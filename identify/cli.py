@@ -90,6 +90,9 @@ def run(args) -> dict:
     print(f"fitting {', '.join(problem.labels())}", flush=True)
 
     def progress(stage, it, cost, step):
+        if cost is None:
+            print(f"  {stage}", flush=True)
+            return
         print(f"  {stage}: iteration {it:3d}: loss {cost:.6g}, largest step {step:.3g}", flush=True)
 
     result = fit(problem, max_iter=args.max_iter, state_dir=out, progress=progress)

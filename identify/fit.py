@@ -49,6 +49,10 @@ PHYSICAL = ("tau", "tau_per_rod", "lengths")
 # robot's rest pose by a millimetre then needs no compensating change of a frame unknown, a
 # valley of the loss 10^4 times narrower than it is long that Levenberg-Marquardt could not follow.
 CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time_offset", 1, 1e-3))
+# Unknowns the motion seen depends on (nearly) linearly: Levenberg-Marquardt's trust region does
+# not bound their steps (a Gauss-Newton step is right for them however large; the start pose of a
+# 1 kHz cantilever film is a millimetre from the first frame, a hundred typical units).
+LINEAR = ("push_force", "push_moment", "start_position", "start_angle")
 CAMERA = tuple(c[0] for c in CAMERA_UNKNOWNS)
 
 
@@ -66,6 +70,11 @@ class Unknown:
     size: int
     log: bool
     unit: float  # value = unit * theta (linear) or exp(theta) (log)
+
+    @property
+    def max_step(self) -> float:
+        """Trust region of one Levenberg-Marquardt step in this unknown's theta."""
+        return math.inf if self.name in LINEAR else 0.5
 
 
 class Problem:
@@ -103,16 +112,21 @@ class Problem:
                 unknowns.append(Unknown("push_moment", 1, False, 1e-4))
         unknowns += [Unknown(n, k, False, unit) for n, k, unit in CAMERA_UNKNOWNS]
         self.unknowns = unknowns
+        self.slices, i = {}, 0  # name -> its slice of theta
+        for u in unknowns:
+            self.slices[u.name] = slice(i, i + u.size)
+            i += u.size
         self.n_physical = sum(u.size for u in unknowns if u.name not in CAMERA)
+        self.max_step = np.concatenate([np.full(u.size, u.max_step) for u in unknowns])
         self.fixed = dict(nom)
         self.t = jnp.asarray(rec.t)
         self.data = jnp.asarray(rec.pose)
         self.sigma = np.array([1e-9, 1e-9, 1e-6])  # replaced by estimates after the first pass
+        self.keep = np.ones(rec.t.size, bool)  # frames that count (all; fewer to study missing frames)
         # compiled once per problem: sigma and the window are arguments
         self._residual = jax.jit(self._residual_fn)
         self._residual_and_jacobian = jax.jit(self._residual_and_jacobian_fn)
         self.initial_values = self._initial_values(nom, initial or {})
-        self.last_start = None  # (motion[0], its tangents) at the last Jacobian: the frame's errors
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
@@ -135,12 +149,10 @@ class Problem:
 
     def to_values(self, theta) -> dict:
         vals = dict(self.fixed)
-        i = 0
         for u in self.unknowns:
-            x = theta[i : i + u.size]
+            x = theta[self.slices[u.name]]
             v = jnp.exp(x) if u.log else x * u.unit
             vals[u.name] = v[0] if u.size == 1 else v
-            i += u.size
         return vals
 
     def labels(self) -> list[str]:
@@ -151,12 +163,18 @@ class Problem:
 
     # -- model --------------------------------------------------------------------------------
     def window(self, t_end: float | None = None):
-        """(frames counted, rollout steps needed) for the frames up to ``t_end`` (all: None)."""
+        """(mask of the frames counted, rollout steps needed): the frames in ``keep`` up to
+        ``t_end`` (all: None)."""
         n = self.t.size if t_end is None else int(np.searchsorted(np.asarray(self.t), t_end, side="right"))
         n = max(n, 1)
         dt, steps = self.scene.solver.dt, self.scene.solver.steps
         need = float(self.t[n - 1]) + self.rec.exposure + 0.02  # time offsets up to 20 ms
-        return jnp.asarray(n, jnp.int32), jnp.asarray(min(steps, int(math.ceil(need / dt)) + 3), jnp.int32)
+        mask = self.keep & (np.arange(self.t.size) < n)
+        return jnp.asarray(mask, jnp.float64), jnp.asarray(min(steps, int(math.ceil(need / dt)) + 3), jnp.int32)
+
+    def counted(self, t_end: float | None = None) -> int:
+        """Residuals that count in the window up to ``t_end``."""
+        return 3 * int(np.sum(np.asarray(self.window(t_end)[0])))
 
     def _split(self, theta):
         return theta[: self.n_physical], theta[self.n_physical :]
@@ -172,19 +190,15 @@ class Problem:
         offset, rotation = frame_transform(motion[0], vals)
         return camera.observe(motion, self.scene.solver.dt, self.t, self.rec.exposure, offset, rotation, vals["time_offset"])
 
-    def _weights(self, sigma, n_frames):
-        w = (jnp.arange(self.t.size) < n_frames).astype(jnp.float64)
-        return w[:, None] / sigma[None, :]
-
-    def _residual_fn(self, theta, sigma, n_frames, active):
+    def _residual_fn(self, theta, sigma, mask, active):
         tp, tc = self._split(theta)
         motion = self._motion(tp, tc, active)
         seen = self._observe(motion, tp, tc)
-        return ((seen - self.data) * self._weights(sigma, n_frames)).reshape(-1), motion
+        return ((seen - self.data) * (mask[:, None] / sigma)).reshape(-1), motion
 
-    def _residual_and_jacobian_fn(self, theta, sigma, n_frames, active):
+    def _residual_and_jacobian_fn(self, theta, sigma, mask, active):
         tp, tc = self._split(theta)
-        w = self._weights(sigma, n_frames)
+        w = mask[:, None] / sigma
         # tangents of the motion for the physical unknowns only
         motion, dmotion = jax.vmap(lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,)), out_axes=(None, -1))(jnp.eye(tp.size))
         seen = self._observe(motion, tp, tc)
@@ -205,14 +219,14 @@ class Problem:
 
     def residual_and_jacobian(self, theta, sigma=None, t_end=None):
         sigma = jnp.asarray(self.sigma if sigma is None else sigma)
-        r, J, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), sigma, *self.window(t_end))
-        self.last_start = (np.asarray(m0), np.asarray(dm0))
-        return r, J
+        return self._residual_and_jacobian(jnp.asarray(theta), sigma, *self.window(t_end))[:2]
 
     def frame(self, theta):
         """(values, Jacobian wrt theta) of the pattern frame's offset (2) and rotation (1), derived
-        from the start pose and the model's pose at t = 0 (of the last Jacobian's evaluation)."""
-        m0, dm0 = self.last_start
+        from the start pose and the model's pose at t = 0 (its tangents from the compiled
+        Jacobian on the shortest window: a few steps)."""
+        _, _, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), jnp.asarray(self.sigma), *self.window(0.0))
+        m0, dm0 = np.asarray(m0), np.asarray(dm0)
         n = self.n_physical
 
         def f(m0_, tc):
@@ -259,8 +273,8 @@ def _covariance(J):
 def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, max_step=0.5, start: dict | None = None, save=None, progress=None):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
-    Steps are bounded to ``max_step`` in every unknown (they are O(1): logs and typical units), a
-    trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
+    Steps are bounded to ``max_step`` (a number, or one per unknown: they are O(1), logs and
+    typical units), a trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
     state that ``save`` was given) resumes an interrupted run; ``save(state)`` is called after
     every accepted step. Returns (theta, J, r, iterations, converged, history)."""
     theta = np.asarray(theta0, float)
@@ -280,7 +294,7 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
         scale = np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
         for _ in range(12):
             step = np.linalg.solve(A + lam * scale, -g)
-            while np.max(np.abs(step)) > max_step:  # raise the damping until the step fits the region
+            while np.any(np.abs(step) > max_step):  # raise the damping until the step fits the region
                 lam *= 4.0
                 step = np.linalg.solve(A + lam * scale, -g)
             r_t = np.asarray(rf(jnp.asarray(theta + step)))
@@ -336,20 +350,21 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     from six starts ``spread`` away (each rod in turn longer, then shorter; frequencies alone do
     not determine lengths: several sets of lengths share them). Each distinct solution is screened
     by a short Levenberg-Marquardt fit of the first ``screen_window`` seconds, which mode shapes and
-    amplitudes decide; the best is returned. ``progress(stage, i, loss, 0)``."""
+    amplitudes decide; the best is returned. ``progress(stage, i, loss, step)``, loss and step
+    None for a message."""
     theta = np.array(theta, float)
     names = [u.name for u in problem.unknowns]
     t_from = experiment.forcing_end(problem.scene)
     lengths_fitted = "lengths" in names
-    n_rods = next((u.size for u in problem.unknowns if u.name == "lengths"), 1)
-    target, tau0 = modes.recorded_modes(problem.rec, t_from)
-    target = target[:n_rods]
-    i_tau = _index(problem, "tau")
-    if i_tau is not None:
-        theta[i_tau] = np.log(tau0)
+    n_rods = int(np.size(problem.fixed["lengths"]))  # one mode per rod: the lowest ones
+    target, tau0 = modes.recorded_modes(problem.rec, t_from, n_rods)
+    if progress is not None:
+        progress(f"modal start: recorded modes {', '.join(f'{f:.2f}' for f in target)} Hz, tau {tau0:.4g} s", 0, None, None)
+    if "tau" in problem.slices:
+        theta[problem.slices["tau"]] = np.log(tau0)
     if not lengths_fitted:
         return theta
-    i_len = _index(problem, "lengths")
+    i_len = problem.slices["lengths"]
     dt = problem.scene.solver.dt
     k0 = int(round(t_from / dt))
 
@@ -361,8 +376,10 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     x0 = theta[i_len]
     starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
     found = []
-    for x in starts:
+    for j, x in enumerate(starts):
         x, ok = modes.match_frequencies(freqs_of, x, target)
+        if progress is not None:
+            progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded frequencies", j + 1, None, None)
         if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
             found.append(x)
     if not found:
@@ -371,21 +388,12 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     for j, x in enumerate(found):
         th = theta.copy()
         th[i_len] = x
-        th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, screen_window), lambda a: problem.residual_and_jacobian(a, None, screen_window), th, screen_iter, ftol=1e-6)
+        th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, screen_window), lambda a: problem.residual_and_jacobian(a, None, screen_window), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
         if progress is not None:
             progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm", j + 1, hist[-1], 0.0)
         if hist[-1] < best_cost:
             best, best_cost = th, hist[-1]
     return best
-
-
-def _index(problem, name):
-    i = 0
-    for u in problem.unknowns:
-        if u.name == name:
-            return slice(i, i + u.size) if u.size > 1 else i
-        i += u.size
-    return None
 
 
 def windows(duration: float, first: float = 0.1) -> list:
@@ -434,14 +442,14 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
         if k < done:
             continue
         if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
-            res = np.asarray(problem.residual(theta)).reshape(-1, 3) * problem.sigma
+            res = (np.asarray(problem.residual(theta)).reshape(-1, 3) * problem.sigma)[problem.keep]
             problem.sigma = np.maximum([np.sqrt(np.mean(res[:, :2] ** 2))] * 2 + [np.sqrt(np.mean(res[:, 2] ** 2))], 1e-15)
         sigma = jnp.asarray(problem.sigma)
         final = t_end is None
 
         theta, J, r, it, converged, hist = levenberg_marquardt(
             lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
-            max_iter, ftol=1e-10 if final else 1e-6, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
+            max_iter, ftol=1e-10 if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
             progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
         )
         resume = None
@@ -449,36 +457,30 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
         history += hist
         summary.append(dict(stage=label, iterations=it, loss=hist[-1], converged=bool(converged)))
         save(dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0), k + 1)
-    m, p = r.size, theta.size
+    return summarize(problem, theta, J, r, t_end=None, iterations=total_it, wall_s=time.perf_counter() - t0, converged=converged, history=history, stages=summary)
+
+
+def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
+    """The `Result` at an optimum ``theta`` (with its Jacobian ``J`` and residuals ``r`` over the
+    window up to ``t_end``): values, standard errors from the Gauss-Newton covariance rescaled by
+    the reduced chi-square, correlations, and the pattern frame derived with its errors."""
+    keep = np.asarray(problem.window(t_end)[0]) > 0
+    m, p = problem.counted(t_end), theta.size
     chi2 = float(r @ r) / max(m - p, 1)
     cov = _covariance(J) * chi2
     se_theta = np.sqrt(np.maximum(np.diag(cov), 0.0))
     corr = cov / np.outer(se_theta, se_theta)
     vals = problem.to_values(jnp.asarray(theta))
     values, errors = {}, {}
-    i = 0
     for u in problem.unknowns:
         v = np.atleast_1d(np.asarray(vals[u.name], float))
-        s = se_theta[i : i + u.size] * (v if u.log else u.unit)  # d exp(x) = exp(x) dx
+        s = se_theta[problem.slices[u.name]] * (v if u.log else u.unit)  # d exp(x) = exp(x) dx
         values[u.name] = v.tolist() if u.size > 1 else float(v[0])
         errors[u.name] = s.tolist() if u.size > 1 else float(s[0])
-        i += u.size
     frame, G = problem.frame(theta)  # the pattern frame, derived: errors by the delta method
     frame_se = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
     values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
     errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
-    res = r.reshape(-1, 3) * problem.sigma
-    return Result(
-        labels=problem.labels(),
-        values=values,
-        standard_errors=errors,
-        correlation=corr.tolist(),
-        sigma=[float(problem.sigma[0]), float(problem.sigma[2])],
-        loss=chi2,
-        rms=np.sqrt(np.mean(res**2, axis=0)).tolist(),
-        iterations=total_it,
-        wall_s=time.perf_counter() - t0,
-        converged=bool(converged),
-        history=history,
-        stages=summary,
-    )
+    res = (r.reshape(-1, 3) * problem.sigma)[keep]
+    return Result(labels=problem.labels(), values=values, standard_errors=errors, correlation=corr.tolist(),
+                  sigma=[float(problem.sigma[0]), float(problem.sigma[2])], loss=chi2, rms=np.sqrt(np.mean(res**2, axis=0)).tolist(), **info)

@@ -27,7 +27,8 @@ def poles(t, pose, frame_rate, order: int, window: int = 12):
     k = np.rint((np.asarray(t) - t[0]) * frame_rate).astype(int)
     full = np.full((k[-1] + 1, pose.shape[1]), np.nan)
     full[k] = pose
-    full = (full - np.nanmean(full, axis=0)) / np.nanstd(full, axis=0)
+    sd = np.nanstd(full, axis=0)
+    full = (full[:, sd > 0] - np.nanmean(full[:, sd > 0], axis=0)) / sd[sd > 0]  # constant columns carry no modes
     rows = []
     for c in range(full.shape[1]):
         for i in range(full.shape[0] - window + 1):
