@@ -353,25 +353,38 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     amplitudes decide; the best is returned. ``progress(stage, i, loss, step)``, loss and step
     None for a message."""
     theta = np.array(theta, float)
-    names = [u.name for u in problem.unknowns]
     t_from = experiment.forcing_end(problem.scene)
-    lengths_fitted = "lengths" in names
-    n_rods = int(np.size(problem.fixed["lengths"]))  # one mode per rod: the lowest ones
-    target, tau0 = modes.recorded_modes(problem.rec, t_from, n_rods)
+    n_rods = int(np.size(problem.fixed["lengths"]))
+    # After an actuator move the higher modes are weak and a slow drift to the new equilibrium
+    # blurs them: the lowest mode is measured, and the static response to the move
+    # (`static_response`: displacement and rotation) stands in for the others. Otherwise one mode
+    # per rod, the lowest ones.
+    actuated = t_from > 0.0 and n_rods > 1
+    n_modes = n_rods - 2 if actuated else n_rods
+    pencil = dict(order=11, rate=1000.0, span=0.1) if actuated else {}  # resolves a 19 Hz mode beside the drift
+    tau_nominal = float(np.mean(problem.fixed["tau"]))
+    target, tau0 = modes.recorded_modes(problem.rec, t_from, n_modes, 2 * n_rods + 1, tau_range=(tau_nominal / 10, tau_nominal * 10))
     if progress is not None:
         progress(f"modal start: recorded modes {', '.join(f'{f:.2f}' for f in target)} Hz, tau {tau0:.4g} s", 0, None, None)
     if "tau" in problem.slices:
         theta[problem.slices["tau"]] = np.log(tau0)
-    if not lengths_fitted:
+    if "lengths" not in problem.slices:
         return theta
     i_len = problem.slices["lengths"]
     dt = problem.scene.solver.dt
     k0 = int(round(t_from / dt))
+    if actuated:
+        rec_t, rec_pose = problem.rec.t, problem.rec.pose
+        before = rec_pose[rec_t < float(np.min(problem.scene.actuation.start))]
+        after = rec_pose[(rec_t >= t_from) & (rec_t <= t_from + horizon)]
+        target = np.concatenate([target, static_response(before, after)])
 
     def freqs_of(x):
         th = theta.copy()
         th[i_len] = x
-        return modes.simulated_frequencies(problem.motion(th, t_from + horizon)[k0:], dt, n_rods)
+        m = problem.motion(th, t_from + horizon)
+        f = modes.simulated_frequencies(m[k0:], dt, n_modes, **pencil)
+        return np.concatenate([f, static_response(m[:1], m[k0:])]) if actuated else f
 
     x0 = theta[i_len]
     starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
@@ -394,6 +407,13 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
         if hist[-1] < best_cost:
             best, best_cost = th, hist[-1]
     return best
+
+
+def static_response(before, after):
+    """(|displacement|, |rotation|) between the mean poses ``before`` and ``after`` an actuator
+    move: invariant under the unknown pattern frame."""
+    d = np.mean(after, axis=0) - np.mean(before, axis=0)
+    return np.array([np.hypot(d[0], d[1]), abs(d[2])])
 
 
 def windows(duration: float, first: float = 0.1) -> list:

@@ -48,52 +48,75 @@ def describe(z, frame_rate):
     return np.abs(np.imag(s)) / (2 * np.pi), -np.real(s)
 
 
-def unalias(freq, decay, frame_rate, folds: int = 4):
+def unalias(freq, decay, frame_rate, folds: int = 4, tau_range=(0.0, np.inf)):
     """Physical frequencies (Hz, sorted) and the damping time ``tau`` that explain aliased modes.
 
     Each aliased frequency ``f`` could be ``k f_s + f`` or ``(k + 1) f_s - f``. Kelvin-Voigt
     damping of the rods' strain decays each mode at ``tau omega^2 / 2``, so of all the choices the
     one whose ``decay / omega^2`` is the most uniform across the modes is taken, and ``tau`` is
-    their geometric mean. (A recording filmed fast enough has ``k = 0`` for every mode.)"""
+    their geometric mean; choices whose ``tau`` lies outside ``tau_range`` are not considered
+    (decays measured over a few cycles are imprecise, and a high fold can fit them better by
+    chance). (A recording filmed fast enough has ``k = 0`` for every mode.)"""
     cands = [[c for k in range(folds) for c in (k * frame_rate + f, (k + 1) * frame_rate - f)] for f in freq]
     best, spread = None, np.inf
+    if not all(len(c) for c in cands):
+        raise ValueError("no modes to unalias")
     for choice in itertools.product(*cands):
         w = 2 * np.pi * np.asarray(choice)
-        s = np.std(np.log(2 * decay / w**2))
+        log_tau = np.log(2 * decay / w**2)
+        if not tau_range[0] <= np.exp(np.mean(log_tau)) <= tau_range[1]:
+            continue
+        s = np.std(log_tau)
         if s < spread:
             best, spread = w, s
+    if best is None:
+        return None, None
     tau = float(np.exp(np.mean(np.log(2 * decay / best**2))))
     return np.sort(best / (2 * np.pi)), tau
 
 
-def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3):
-    """(physical frequencies Hz, tau) of the ``n_modes`` modes the recording shows after ``t_from``."""
+def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3, order: int | None = None, tau_range=(0.0, np.inf)):
+    """(physical frequencies Hz, tau) of the ``n_modes`` modes of lowest (aliased) frequency the
+    recording shows after ``t_from`` (poles of ``order``, default ``2 n_modes + 1``; a pole at the
+    Nyquist frequency is noise, not a mode)."""
     keep = rec.t >= t_from
-    z = poles(rec.t[keep], rec.pose[keep], rec.frame_rate, 2 * n_modes + 1)
+    z = poles(rec.t[keep], rec.pose[keep], rec.frame_rate, order or 2 * n_modes + 1)
     f, d = describe(z, rec.frame_rate)
-    osc = (f > 1e-3 * rec.frame_rate) & (d > 0)
+    osc = (f > 1e-3 * rec.frame_rate) & (f < 0.49 * rec.frame_rate) & (d > 0)
     if osc.sum() < n_modes:
         raise ValueError(f"{rec.path}: {osc.sum()} decaying oscillations found after t = {t_from:g} s, {n_modes} needed for the modal initialisation")
-    return unalias(f[osc], d[osc], rec.frame_rate)
+    lowest = np.argsort(f[osc])[:n_modes]
+    freqs, tau = unalias(f[osc][lowest], d[osc][lowest], rec.frame_rate, tau_range=tau_range)
+    if freqs is None:
+        raise ValueError(f"{rec.path}: no unaliasing of the recorded modes gives a damping time within {tau_range[0]:.3g}-{tau_range[1]:.3g} s")
+    return freqs, tau
 
 
-def simulated_frequencies(motion, dt, n_modes: int, order: int = 9):
-    """The ``n_modes`` lowest frequencies (Hz) of a simulated motion (T, 3) sampled every ``dt``."""
-    f, d = describe(poles(np.arange(motion.shape[0]) * dt, motion, 1.0 / dt, order, 40), 1.0 / dt)
+def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float | None = None, span: float = 0.02):
+    """The ``n_modes`` lowest frequencies (Hz) of a simulated motion (T, 3) sampled every ``dt``,
+    resampled at about ``rate`` (None: every sample; no aliasing below rate/2), pencil windows of
+    ``span`` s."""
+    sub = 1 if rate is None else max(1, int(round(1.0 / (rate * dt))))
+    x, h = motion[::sub], dt * sub
+    f, d = describe(poles(np.arange(x.shape[0]) * h, x, 1.0 / h, order, int(round(span / h))), 1.0 / h)
     f = np.sort(f[(f > 1.0) & (d > -1.0)])
     return f[:n_modes] if f.size >= n_modes else np.full(n_modes, np.nan)
 
 
 def match_frequencies(freqs_of, x0, target, max_iter: int = 20, max_step: float = 0.01, h: float = 1e-4, tol: float = 1e-4):
-    """Newton on log frequencies: ``x`` (log lengths) such that ``freqs_of(x)`` (sorted, Hz) equals
-    ``target``; finite-difference Jacobian, steps bounded to ``max_step``. Returns (x, converged)."""
-    x = np.asarray(x0, float).copy()
+    """Gauss-Newton on log features: ``x`` (log lengths) such that ``freqs_of(x)`` (positive: sorted
+    frequencies in Hz, static displacements) equals ``target`` (as many or more than ``x``: least
+    squares); finite-difference Jacobian, steps bounded to ``max_step``. Returns (x, converged):
+    converged when every feature matches to ``tol`` (as many as ``x``) or the steps stop."""
+    x, last = np.asarray(x0, float).copy(), None
     for _ in range(max_iter):
         res = np.log(freqs_of(x) / target)
         if not np.all(np.isfinite(res)):
             return x, False
         if np.max(np.abs(res)) < tol:
             return x, True
+        if last is not None and np.max(np.abs(last)) < 0.1 * tol:
+            return x, bool(np.max(np.abs(res)) < 0.03)  # least squares: stationary, features within 3 %
         J = np.empty((target.size, x.size))
         for k in range(x.size):
             e = x.copy()
@@ -102,5 +125,7 @@ def match_frequencies(freqs_of, x0, target, max_iter: int = 20, max_step: float 
         step = np.linalg.lstsq(J, -res, rcond=None)[0]
         if not np.all(np.isfinite(step)):
             return x, False
-        x += step * min(1.0, max_step / max(np.max(np.abs(step)), 1e-300))
-    return x, bool(np.max(np.abs(np.log(freqs_of(x) / target))) < tol)
+        last = step * min(1.0, max_step / max(np.max(np.abs(step)), 1e-300))
+        x += last
+    res = np.log(freqs_of(x) / target)
+    return x, bool(np.max(np.abs(res)) < (tol if target.size == x.size else 0.03))
