@@ -22,7 +22,6 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-import pcrjax  # noqa: F401  (float64, compilation cache)
 
 from .fit import Problem, adam, levenberg_marquardt, summarize
 from .recording import load_recording
@@ -44,8 +43,10 @@ def _lm(pb, theta, t_end, max_iter=30):
     return levenberg_marquardt(lambda th: pb.residual(th, None, t_end), lambda th: pb.residual_and_jacobian(th, None, t_end), theta, max_iter, max_step=pb.max_step)
 
 
-def accuracy(path, lengths=(0.25, 0.5, 1.0, 2.0), missing=(0.0, 0.2, 0.5), seed=0):
+def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), seed=0):
+    """Cells: the first ``fractions`` of the recording x ``missing`` extra frames dropped."""
     rec = load_recording(path)
+    lengths = [f * float(rec.t[-1]) for f in fractions]
     pb = Problem(rec, ("tau", "lengths"))
     tr = rec.truth
     pb.sigma = np.array([tr["noise_position"]] * 2 + [tr["noise_angle"]])
@@ -61,7 +62,7 @@ def accuracy(path, lengths=(0.25, 0.5, 1.0, 2.0), missing=(0.0, 0.2, 0.5), seed=
         for miss in missing:
             pb.keep = u >= miss
             pb.keep[0] = True
-            t_end = None if T >= rec.t[-1] else T
+            t_end = None if T >= rec.t[-1] - 1e-9 else T
             t1 = time.perf_counter()
             theta, J, r, it, conv, _ = _lm(pb, best, t_end)
             res = summarize(pb, theta, J, r, t_end=t_end)

@@ -43,6 +43,7 @@ from . import camera, experiment, modes
 from .recording import Recording, RecordingError
 
 PHYSICAL = ("tau", "tau_per_rod", "lengths")
+NOMINAL_SIGMA = np.array([1e-9, 1e-9, 1e-6])  # noise scales (m, m, rad) of the first pass
 # The camera's unknowns: where it sees the robot's pose at t = 0 (the static equilibrium the
 # motion starts from) and its clock offset. The pattern frame (offset, rotation) follows from the
 # start pose and the model's own pose at t = 0 (`frame_transform`): a rod length that moves the
@@ -121,7 +122,7 @@ class Problem:
         self.fixed = dict(nom)
         self.t = jnp.asarray(rec.t)
         self.data = jnp.asarray(rec.pose)
-        self.sigma = np.array([1e-9, 1e-9, 1e-6])  # replaced by estimates after the first pass
+        self.sigma = NOMINAL_SIGMA.copy()  # replaced by estimates after the first pass
         self.keep = np.ones(rec.t.size, bool)  # frames that count (all; fewer to study missing frames)
         # compiled once per problem: sigma and the window are arguments
         self._residual = jax.jit(self._residual_fn)
@@ -253,10 +254,10 @@ class Result:
     sigma: list  # noise estimates: position (m), angle (rad)
     loss: float  # final reduced chi-square
     rms: list  # RMS residual per column, in m, m, rad
-    iterations: int
-    wall_s: float
-    converged: bool
-    history: list  # loss per iteration (all stages)
+    iterations: int = 0
+    wall_s: float = 0.0
+    converged: bool = True
+    history: list = dataclasses.field(default_factory=list)  # loss per iteration (all stages)
     stages: list = dataclasses.field(default_factory=list)  # per stage: window, iterations, final loss
     message: str = ""
 
@@ -441,6 +442,7 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
     stages = [(f"window {w:g} s", w) for w in windows(duration, first_window)[:-1]] + [("whole recording", None), ("whole recording, noise re-estimated", None)]
     state_file = None if state_dir is None else Path(state_dir) / "fit_state.json"
     theta = np.asarray(problem.to_theta(problem.initial_values))
+    problem.sigma = NOMINAL_SIGMA.copy()
     done, history, total_it, resume = 0, [], 0, None
     if state_file is not None and state_file.is_file():
         st = json.loads(state_file.read_text())

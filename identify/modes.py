@@ -92,13 +92,13 @@ def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3, order: int | None
     return freqs, tau
 
 
-def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float | None = None, span: float = 0.02):
+def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float | None = None, span: float | None = None):
     """The ``n_modes`` lowest frequencies (Hz) of a simulated motion (T, 3) sampled every ``dt``,
     resampled at about ``rate`` (None: every sample; no aliasing below rate/2), pencil windows of
-    ``span`` s."""
+    ``span`` s (None: 40 samples)."""
     sub = 1 if rate is None else max(1, int(round(1.0 / (rate * dt))))
     x, h = motion[::sub], dt * sub
-    f, d = describe(poles(np.arange(x.shape[0]) * h, x, 1.0 / h, order, int(round(span / h))), 1.0 / h)
+    f, d = describe(poles(np.arange(x.shape[0]) * h, x, 1.0 / h, order, 40 if span is None else int(round(span / h))), 1.0 / h)
     f = np.sort(f[(f > 1.0) & (d > -1.0)])
     return f[:n_modes] if f.size >= n_modes else np.full(n_modes, np.nan)
 

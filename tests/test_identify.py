@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from identify import modes
-from identify.fit import Problem, fit
+from identify.fit import Problem, fit, levenberg_marquardt, summarize
 from identify.recording import load_recording
 
 DATA = "experiments_data"
@@ -58,13 +58,74 @@ def _check_recovery(res, truth, names):
     assert abs(v["frame_rotation"] - truth["frame_rotation"]) < 3 * se["frame_rotation"]
 
 
-@pytest.mark.slow
-def test_push_release_fit_recovers_truth(tmp_path):
-    rec = load_recording(f"{DATA}/triskele_push_release.csv")
-    # issue 4's start: nominal lengths (32 mm), damping a factor 3 off the truth
-    pb = Problem(rec, ("tau", "lengths"), initial={"tau": rec.truth["tau"] / 3})
-    res = fit(pb, state_dir=tmp_path)
+@pytest.fixture(scope="module")
+def problems():
+    """One Problem (two compiled programs) per recording, shared by the slow tests."""
+    cache = {}
+
+    def get(name, fitted=("tau", "lengths")):
+        if (name, fitted) not in cache:
+            rec = load_recording(f"{DATA}/{name}.csv")
+            # issue 4's start: nominal lengths, damping a factor 3 off the truth
+            cache[name, fitted] = Problem(rec, fitted, initial={"tau": rec.truth["tau"] / 3})
+        return cache[name, fitted]
+
+    return get
+
+
+def _check_fit(res, rec):
     assert res.converged
     _check_recovery(res, rec.truth, ("tau", "lengths"))
     assert res.loss < 1.5  # reduced chi-square at the noise level
     assert np.allclose(res.sigma, [rec.truth["noise_position"], rec.truth["noise_angle"]], rtol=0.2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["triskele_push_release", pytest.param("triskele_actuator_step", marks=pytest.mark.skip(
+    reason="issue 4 open: the actuator step's modal start (lowest mode + static response) does not yet find lengths that match"))])
+def test_fit_recovers_truth(problems, name, tmp_path):
+    pb = problems(name)
+    _check_fit(fit(pb, state_dir=tmp_path), pb.rec)
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.slow
+def test_interrupted_cantilever_fit_resumes_and_recovers_truth(problems, tmp_path):
+    pb = problems("cantilever_release")
+
+    def interrupt(stage, it, loss, step):
+        if stage.startswith("window 0.2") and it == 1:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        fit(pb, state_dir=tmp_path, progress=interrupt)
+    assert (tmp_path / "fit_state.json").is_file()
+    seen = []
+    res = fit(pb, state_dir=tmp_path, progress=lambda stage, *a: seen.append(stage))
+    assert not any(s.startswith("modal") or s.startswith("window 0.1") for s in seen)  # no work redone
+    assert seen[0].startswith("window 0.2")
+    _check_fit(res, pb.rec)
+
+
+@pytest.mark.slow
+def test_short_recording_reports_large_uncertainty(problems):
+    """40 ms of a released cantilever (a third of its 9.5 Hz period) barely shows the damping:
+    the reported error must say so, and still cover the truth."""
+    pb = problems("cantilever_release")
+    tr = pb.rec.truth
+    pb.sigma = np.array([tr["noise_position"]] * 2 + [tr["noise_angle"]])
+    vals = dict(pb.initial_values, **{k: np.asarray(tr[k], float) for k in ("tau", "lengths", "push_force", "time_offset")})
+    out = {}
+    for t_end in (0.04, None):
+        th, J, r, *_ = levenberg_marquardt(lambda a: pb.residual(a, None, t_end), lambda a: pb.residual_and_jacobian(a, None, t_end),
+                                           np.asarray(pb.to_theta(vals)), 30, max_step=pb.max_step)
+        out[t_end] = summarize(pb, th, J, r, t_end=t_end)
+    short, whole = out[0.04], out[None]
+    assert short.standard_errors["tau"] > 0.1 * tr["tau"]  # large: not a confident answer
+    assert abs(short.values["tau"] - tr["tau"]) < 3 * short.standard_errors["tau"]
+    assert whole.standard_errors["tau"] < 1e-3 * tr["tau"]  # the whole second determines it
+
+
