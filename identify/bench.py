@@ -82,7 +82,7 @@ def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), s
     return rows
 
 
-def optimizers(path, window=0.2, adam_steps=300, learning_rates=(1e-2, 3e-2, 1e-1)):
+def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
     rec = load_recording(path)
     pb = Problem(rec, ("tau", "lengths"))
     tr = rec.truth
