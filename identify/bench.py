@@ -22,7 +22,6 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-
 from .fit import Problem, adam, levenberg_marquardt, summarize
 from .recording import load_recording
 

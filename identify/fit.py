@@ -347,7 +347,8 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     """Start values of damping and lengths from the recording's modes (`modes`).
 
     The damping time comes from the decay of the recorded modes. Lengths: Newton on the model's
-    lowest frequencies (one per rod) until they equal the recording's, from the nominal lengths and
+    lowest frequencies (one per rod; after an actuator move, the lowest mode and the static
+    response to the move) until they equal the recording's, from the nominal lengths and
     from six starts ``spread`` away (each rod in turn longer, then shorter; frequencies alone do
     not determine lengths: several sets of lengths share them). Each distinct solution is screened
     by a short Levenberg-Marquardt fit of the first ``screen_window`` seconds, which mode shapes and
@@ -360,7 +361,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     # blurs them: the lowest mode is measured, and the static response to the move
     # (`static_response`: displacement and rotation) stands in for the others. Otherwise one mode
     # per rod, the lowest ones.
-    actuated = t_from > 0.0 and n_rods > 1
+    actuated = t_from > 0.0 and n_rods > 2
     n_modes = n_rods - 2 if actuated else n_rods
     pencil = dict(order=11, rate=1000.0, span=0.1) if actuated else {}  # resolves a 19 Hz mode beside the drift
     tau_nominal = float(np.mean(problem.fixed["tau"]))
@@ -380,7 +381,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
         after = rec_pose[(rec_t >= t_from) & (rec_t <= t_from + horizon)]
         target = np.concatenate([target, static_response(before, after)])
 
-    def freqs_of(x):
+    def features_of(x):
         th = theta.copy()
         th[i_len] = x
         m = problem.motion(th, t_from + horizon)
@@ -391,7 +392,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
     found = []
     for j, x in enumerate(starts):
-        x, ok = modes.match_frequencies(freqs_of, x, target)
+        x, ok = modes.match_frequencies(features_of, x, target)
         if progress is not None:
             progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded frequencies", j + 1, None, None)
         if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):

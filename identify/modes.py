@@ -57,10 +57,10 @@ def unalias(freq, decay, frame_rate, folds: int = 4, tau_range=(0.0, np.inf)):
     their geometric mean; choices whose ``tau`` lies outside ``tau_range`` are not considered
     (decays measured over a few cycles are imprecise, and a high fold can fit them better by
     chance). (A recording filmed fast enough has ``k = 0`` for every mode.)"""
-    cands = [[c for k in range(folds) for c in (k * frame_rate + f, (k + 1) * frame_rate - f)] for f in freq]
-    best, spread = None, np.inf
-    if not all(len(c) for c in cands):
+    if len(freq) == 0:
         raise ValueError("no modes to unalias")
+    cands = [[c for k in range(folds) for c in (k * frame_rate + f, (k + 1) * frame_rate - f)] for f in freq]
+    best, best_log_tau, spread = None, None, np.inf
     for choice in itertools.product(*cands):
         w = 2 * np.pi * np.asarray(choice)
         log_tau = np.log(2 * decay / w**2)
@@ -68,11 +68,10 @@ def unalias(freq, decay, frame_rate, folds: int = 4, tau_range=(0.0, np.inf)):
             continue
         s = np.std(log_tau)
         if s < spread:
-            best, spread = w, s
+            best, best_log_tau, spread = w, log_tau, s
     if best is None:
         return None, None
-    tau = float(np.exp(np.mean(np.log(2 * decay / best**2))))
-    return np.sort(best / (2 * np.pi)), tau
+    return np.sort(best / (2 * np.pi)), float(np.exp(np.mean(best_log_tau)))
 
 
 def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3, order: int | None = None, tau_range=(0.0, np.inf)):
@@ -103,14 +102,14 @@ def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float 
     return f[:n_modes] if f.size >= n_modes else np.full(n_modes, np.nan)
 
 
-def match_frequencies(freqs_of, x0, target, max_iter: int = 20, max_step: float = 0.01, h: float = 1e-4, tol: float = 1e-4):
-    """Gauss-Newton on log features: ``x`` (log lengths) such that ``freqs_of(x)`` (positive: sorted
+def match_frequencies(features_of, x0, target, max_iter: int = 20, max_step: float = 0.01, h: float = 1e-4, tol: float = 1e-4):
+    """Gauss-Newton on log features: ``x`` (log lengths) such that ``features_of(x)`` (positive: sorted
     frequencies in Hz, static displacements) equals ``target`` (as many or more than ``x``: least
     squares); finite-difference Jacobian, steps bounded to ``max_step``. Returns (x, converged):
     converged when every feature matches to ``tol`` (as many as ``x``) or the steps stop."""
     x, last = np.asarray(x0, float).copy(), None
     for _ in range(max_iter):
-        res = np.log(freqs_of(x) / target)
+        res = np.log(features_of(x) / target)
         if not np.all(np.isfinite(res)):
             return x, False
         if np.max(np.abs(res)) < tol:
@@ -121,11 +120,11 @@ def match_frequencies(freqs_of, x0, target, max_iter: int = 20, max_step: float 
         for k in range(x.size):
             e = x.copy()
             e[k] += h
-            J[:, k] = (np.log(freqs_of(e) / target) - res) / h
+            J[:, k] = (np.log(features_of(e) / target) - res) / h
         step = np.linalg.lstsq(J, -res, rcond=None)[0]
         if not np.all(np.isfinite(step)):
             return x, False
         last = step * min(1.0, max_step / max(np.max(np.abs(step)), 1e-300))
         x += last
-    res = np.log(freqs_of(x) / target)
+    res = np.log(features_of(x) / target)
     return x, bool(np.max(np.abs(res)) < (tol if target.size == x.size else 0.03))
