@@ -121,6 +121,7 @@ def _scene(rec, name):
 
 
 def main(argv=None) -> int:
+    from .fit import FitError
     from .recording import RecordingError
 
     args = _parser().parse_args(argv)
@@ -129,6 +130,9 @@ def main(argv=None) -> int:
     except (RecordingError, SceneError, ValueError) as e:
         print(f"pcrjax-identify: error: {e}", file=sys.stderr)
         return 2
+    except FitError as e:
+        print(f"pcrjax-identify: fit failed: {e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("pcrjax-identify: interrupted; run the same command again to resume from the last saved iteration", file=sys.stderr)
         return 130

@@ -33,11 +33,13 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import pcrjax
+from pcrjax.signals import Actuation
 
 from . import camera, experiment, modes
 from .recording import Recording, RecordingError
@@ -181,10 +183,12 @@ class Problem:
         return theta[: self.n_physical], theta[self.n_physical :]
 
     def _motion(self, theta_phys, theta_cam, active):
-        """Simulated planar poses (T, 3), sampled every dt (zeros after ``active`` steps)."""
+        """(simulated planar poses (T, 3) sampled every dt, zeros after ``active`` steps; whether
+        every step's Newton solve converged)."""
         vals = self.to_values(jnp.concatenate([theta_phys, theta_cam]))
         s = experiment.apply(self.scene, vals)
-        return experiment.planar_pose(s, pcrjax.rollout(s, active))
+        traj = pcrjax.rollout(s, active)
+        return experiment.planar_pose(s, traj), jnp.all(traj.converged)
 
     def _observe(self, motion, theta_phys, theta_cam):
         vals = self.to_values(jnp.concatenate([theta_phys, theta_cam]))
@@ -193,21 +197,23 @@ class Problem:
 
     def _residual_fn(self, theta, sigma, mask, active):
         tp, tc = self._split(theta)
-        motion = self._motion(tp, tc, active)
+        motion, ok = self._motion(tp, tc, active)
         seen = self._observe(motion, tp, tc)
-        return ((seen - self.data) * (mask[:, None] / sigma)).reshape(-1), motion
+        # a rollout whose Newton solves failed is no model of anything: NaN, never a residual
+        return jnp.where(ok, ((seen - self.data) * (mask[:, None] / sigma)).reshape(-1), jnp.nan), jnp.where(ok, motion, jnp.nan)
 
     def _residual_and_jacobian_fn(self, theta, sigma, mask, active):
         tp, tc = self._split(theta)
         w = mask[:, None] / sigma
         # tangents of the motion for the physical unknowns only
-        motion, dmotion = jax.vmap(lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,)), out_axes=(None, -1))(jnp.eye(tp.size))
+        motion, dmotion, ok = jax.vmap(lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,), has_aux=True), out_axes=(None, -1, None))(jnp.eye(tp.size))
         seen = self._observe(motion, tp, tc)
         # the camera is linear in the motion: push each tangent through it
         d_seen = jax.vmap(lambda dm: jax.jvp(lambda m: self._observe(m, tp, tc), (motion,), (dm,))[1], in_axes=-1, out_axes=-1)(dmotion)
         j_cam = jax.jacfwd(lambda c: self._observe(motion, tp, c))(tc)
         J = jnp.concatenate([d_seen, j_cam], axis=-1) * w[..., None]
-        return ((seen - self.data) * w).reshape(-1), J.reshape(-1, theta.size), motion[0], dmotion[0]
+        r = jnp.where(ok, ((seen - self.data) * w).reshape(-1), jnp.nan)
+        return r, J.reshape(-1, theta.size), motion[0], dmotion[0]
 
     def residual(self, theta, sigma=None, t_end=None):
         sigma = jnp.asarray(self.sigma if sigma is None else sigma)
@@ -243,6 +249,10 @@ class Problem:
         """Camera poses (M, 3) at ``theta`` (frames after ``t_end``: the recording's own)."""
         sigma = jnp.asarray(self.sigma)
         return self.data + self.residual(theta, sigma, t_end).reshape(-1, 3) * sigma
+
+
+class FitError(RuntimeError):
+    """The fit cannot go on (a simulation that does not converge at the values it must start from)."""
 
 
 @dataclasses.dataclass
@@ -284,6 +294,8 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
         theta, lam, history, it0 = np.asarray(start["theta"], float), start["lam"], list(start["history"]), start["iteration"]
     r, J = (np.asarray(a) for a in rj(jnp.asarray(theta)))
     cost = 0.5 * float(r @ r)
+    if not (np.isfinite(cost) and np.all(np.isfinite(J))):
+        raise FitError("the residual or its Jacobian at the start is not finite (a simulation whose Newton solves did not converge)")
     if not history:
         history.append(cost)
     converged = False
@@ -343,29 +355,28 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
     return np.asarray(theta), history
 
 
-def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, horizon: float = 0.4, screen_window: float = 0.2, screen_iter: int = 8):
+def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, screen_window: float = 0.2, screen_iter: int = 8, settle_from: float = 0.6):
     """Start values of damping and lengths from the recording's modes (`modes`).
 
-    The damping time comes from the decay of the recorded modes. Lengths: Newton on the model's
-    lowest frequencies (one per rod; after an actuator move, the lowest mode and the static
-    response to the move) until they equal the recording's, from the nominal lengths and
-    from six starts ``spread`` away (each rod in turn longer, then shorter; frequencies alone do
-    not determine lengths: several sets of lengths share them). Each distinct solution is screened
-    by a short Levenberg-Marquardt fit of the first ``screen_window`` seconds, which mode shapes and
-    amplitudes decide; the best is returned. ``progress(stage, i, loss, step)``, loss and step
-    None for a message."""
+    The damping time comes from the decay of the recorded modes. Lengths: Newton on features
+    that do not depend on the camera's frame and clock, until the model's equal the recording's,
+    from the nominal lengths and from six starts ``spread`` away (each rod in turn longer, then
+    shorter; the features alone do not determine lengths: several sets of lengths share them).
+    The features are the lowest frequencies (one per rod) of free motion; after an actuator move
+    they are the static response to the move (|displacement| and |rotation| between the
+    equilibria before and after it: `static_shift` for the model, `modes.settled` after
+    ``settle_from`` s for the recording), which are smooth in the lengths and need no rollout;
+    at the camera's 114 frames/s, frequencies estimated from a few cycles jump between aliased
+    modes as lengths change. Each distinct solution is screened by a short
+    Levenberg-Marquardt fit of the first ``screen_window`` seconds after the forcing, which
+    mode shapes and amplitudes decide; the best is returned. ``progress(stage, i, loss, step)``,
+    loss and step None for a message."""
     theta = np.array(theta, float)
     t_from = experiment.forcing_end(problem.scene)
     n_rods = int(np.size(problem.fixed["lengths"]))
-    # After an actuator move the higher modes are weak and a slow drift to the new equilibrium
-    # blurs them: the lowest mode is measured, and the static response to the move
-    # (`static_response`: displacement and rotation) stands in for the others. Otherwise one mode
-    # per rod, the lowest ones.
-    actuated = t_from > 0.0 and n_rods > 2
-    n_modes = n_rods - 2 if actuated else n_rods
-    pencil = dict(order=11, rate=1000.0, span=0.1) if actuated else {}  # resolves a 19 Hz mode beside the drift
+    actuated = t_from > 0.0
     tau_nominal = float(np.mean(problem.fixed["tau"]))
-    target, tau0 = modes.recorded_modes(problem.rec, t_from, n_modes, 2 * n_rods + 1, tau_range=(tau_nominal / 10, tau_nominal * 10))
+    target, tau0 = modes.recorded_modes(problem.rec, t_from, 1 if actuated else n_rods, 2 * n_rods + 1, tau_range=(tau_nominal / 10, tau_nominal * 10))
     if progress is not None:
         progress(f"modal start: recorded modes {', '.join(f'{f:.2f}' for f in target)} Hz, tau {tau0:.4g} s", 0, None, None)
     if "tau" in problem.slices:
@@ -373,20 +384,22 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     if "lengths" not in problem.slices:
         return theta
     i_len = problem.slices["lengths"]
-    dt = problem.scene.solver.dt
-    k0 = int(round(t_from / dt))
     if actuated:
-        rec_t, rec_pose = problem.rec.t, problem.rec.pose
-        before = rec_pose[rec_t < float(np.min(problem.scene.actuation.start))]
-        after = rec_pose[(rec_t >= t_from) & (rec_t <= t_from + horizon)]
-        target = np.concatenate([target, static_response(before, after)])
+        rec = problem.rec
+        t_move = float(np.min(problem.scene.actuation.start))
+        late = rec.t >= max(settle_from, t_from)
+        shift = modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(rec.pose[rec.t < t_move], axis=0)
+        target = np.array([np.hypot(shift[0], shift[1]), abs(shift[2])])
+        if progress is not None:
+            progress(f"modal start: static response to the move {target[0] * 1e6:.4g} um, {target[1] * 1e6:.4g} urad", 0, None, None)
+        model_shift = static_shift(problem.scene)
+        features_of = lambda x: np.asarray(model_shift(jnp.asarray(x)))  # noqa: E731
+    else:
 
-    def features_of(x):
-        th = theta.copy()
-        th[i_len] = x
-        m = problem.motion(th, t_from + horizon)
-        f = modes.simulated_frequencies(m[k0:], dt, n_modes, **pencil)
-        return np.concatenate([f, static_response(m[:1], m[k0:])]) if actuated else f
+        def features_of(x):
+            th = theta.copy()
+            th[i_len] = x
+            return modes.simulated_frequencies(problem.motion(th, 0.4), problem.scene.solver.dt, n_rods)
 
     x0 = theta[i_len]
     starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
@@ -394,28 +407,44 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     for j, x in enumerate(starts):
         x, ok = modes.match_frequencies(features_of, x, target)
         if progress is not None:
-            progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded frequencies", j + 1, None, None)
+            progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded features", j + 1, None, None)
         if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
             found.append(x)
     if not found:
-        raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded modes ({', '.join(f'{f:.2f}' for f in target)} Hz)")
+        raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})")
     best, best_cost = None, np.inf
     for j, x in enumerate(found):
         th = theta.copy()
         th[i_len] = x
-        th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, screen_window), lambda a: problem.residual_and_jacobian(a, None, screen_window), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
+        try:
+            th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, t_from + screen_window), lambda a: problem.residual_and_jacobian(a, None, t_from + screen_window), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
+        except FitError:  # the simulation fails there: not a candidate
+            continue
         if progress is not None:
             progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm", j + 1, hist[-1], 0.0)
         if hist[-1] < best_cost:
             best, best_cost = th, hist[-1]
+    if best is None:
+        raise FitError(f"{problem.rec.path}: the simulation fails at every set of lengths that gives the recorded features")
     return best
 
 
-def static_response(before, after):
-    """(|displacement|, |rotation|) between the mean poses ``before`` and ``after`` an actuator
-    move: invariant under the unknown pattern frame."""
-    d = np.mean(after, axis=0) - np.mean(before, axis=0)
-    return np.array([np.hypot(d[0], d[1]), abs(d[2])])
+def static_shift(scene):
+    """Jitted ``log lengths -> (|displacement|, |rotation|)`` of the static equilibrium after the
+    actuators' moves relative to the one before (planar pose, m and rad)."""
+    act = scene.actuation
+    end = act(jnp.asarray(experiment.forcing_end(scene)))
+    held = Actuation(initial=end, final=end, start=act.start * 0, duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0])
+    after = eqx.tree_at(lambda s: s.actuation, scene, held)
+
+    @jax.jit
+    def shift(log_lengths):
+        a, b = (pcrjax.solve_static(experiment.apply(s, {"lengths": jnp.exp(log_lengths)}), throw=False) for s in (scene, after))
+        d = b.position[:2] - a.position[:2]
+        ok = a.converged & b.converged
+        return jnp.where(ok, jnp.stack([jnp.hypot(d[0], d[1]), jnp.abs(b.rotation_vector[2] - a.rotation_vector[2])]), jnp.nan)
+
+    return shift
 
 
 def windows(duration: float, first: float = 0.1) -> list:
@@ -470,11 +499,15 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
         sigma = jnp.asarray(problem.sigma)
         final = t_end is None
 
-        theta, J, r, it, converged, hist = levenberg_marquardt(
-            lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
-            max_iter, ftol=1e-10 if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
-            progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
-        )
+        try:
+            theta, J, r, it, converged, hist = levenberg_marquardt(
+                lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
+                max_iter, ftol=1e-10 if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
+                progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
+            )
+        except FitError as e:
+            vals = {u.name: np.round(np.asarray(v, float), 9).tolist() for u in problem.unknowns for v in [problem.to_values(jnp.asarray(theta))[u.name]]}
+            raise FitError(f"{problem.rec.path}: {label}: {e}; values {vals}. A smaller [solver] dt in the sidecar or other start values (--tau0) may help") from None
         resume = None
         total_it += it
         history += hist

@@ -91,6 +91,33 @@ def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3, order: int | None
     return freqs, tau
 
 
+def settled(t, pose, frame_rate, order: int):
+    """(discrete poles, the constant pose (3,) the motion settles to) of frames ``pose`` (M, 3) at
+    times ``t``: the constant of a least-squares fit of a constant plus the poles' damped
+    oscillations (the mean of a few cycles is off by a fraction of their amplitude)."""
+    z = poles(t, pose, frame_rate, order)
+    n = np.rint((np.asarray(t) - t[0]) * frame_rate)
+    cols = [np.ones_like(n)]
+    for zk in z[np.abs(z - 1.0) > 1e-6]:  # the constant is fitted as such
+        zn = zk**n
+        cols += [zn.real] + ([zn.imag] if abs(zk.imag) > 1e-12 else [])
+    coef = np.linalg.lstsq(np.stack(cols, axis=1), pose, rcond=None)[0]
+    return z, coef[0]
+
+
+def step_response(t, pose, frame_rate, t_move: float, t_from: float, order: int = 7):
+    """Features of the motion after an actuator move, none of which depends on the camera's frame:
+    (lowest aliased oscillation frequency Hz, |displacement| m, |rotation| rad) of the pose
+    settled to after ``t_from`` relative to the mean pose before ``t_move``. Model and recording
+    are to be sampled alike (the same frames): the features are then equally biased."""
+    after = np.asarray(t) >= t_from
+    z, end = settled(t[after], pose[after], frame_rate, order)
+    f, d = describe(z, frame_rate)
+    osc = (f > 1e-3 * frame_rate) & (f < 0.49 * frame_rate)
+    shift = end - np.mean(pose[np.asarray(t) < t_move], axis=0)
+    return np.array([np.min(f[osc]) if osc.any() else np.nan, np.hypot(shift[0], shift[1]), abs(shift[2])])
+
+
 def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float | None = None, span: float | None = None):
     """The ``n_modes`` lowest frequencies (Hz) of a simulated motion (T, 3) sampled every ``dt``,
     resampled at about ``rate`` (None: every sample; no aliasing below rate/2), pencil windows of

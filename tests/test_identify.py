@@ -131,3 +131,25 @@ def test_short_noisy_recording_reports_large_uncertainty():
     # shipped recording), so the fit does not claim an accuracy the data do not hold
     assert se > 0.02 * tr["tau"], (se, err)
     assert abs(err) < 3 * se
+
+
+@pytest.mark.slow
+def test_recording_with_the_scenes_own_values_fits_back_unchanged(tmp_path):
+    """A recording generated with the scene's own damping, length and push (the cantilever's
+    sidecar values) fitted from those values: the fit must return them (no drift away from a
+    start that is already the truth) with the loss at the noise level."""
+    import importlib.util
+
+    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
+    gen = importlib.util.module_from_spec(spec_file)
+    spec_file.loader.exec_module(gen)
+    spec = dict(gen.RECORDINGS["cantilever_release"])
+    truth = dict(spec["truth"], tau=spec["rod"]["tau"], lengths=0.4, push_force=[spec["tip"]["force"][0], spec["tip"]["force"][2]])
+    spec.update(seconds=0.5, truth=truth)
+    rec = load_recording(gen.generate("cantilever_release", spec, tmp_path))
+    pb = Problem(rec, ("tau", "lengths"))
+    nominal = pb.to_values(pb.to_theta(pb.initial_values))
+    assert float(nominal["tau"]) == truth["tau"] and float(nominal["lengths"]) == truth["lengths"]  # the scene's own values
+    res = fit(pb, state_dir=tmp_path)
+    _check_fit(res, rec)
+    assert abs(res.values["push_force"][1] - truth["push_force"][1]) < 3 * res.standard_errors["push_force"][1]
