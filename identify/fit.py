@@ -9,7 +9,8 @@ for a push-and-release, the push that was released (its force and moment). Posit
 are fitted as logarithms, the others in units of a typical size, so every unknown is O(1).
 
 **Start.** `modal_start`: damping from the decay of the recorded modes, lengths that give the
-model the recorded frequencies (`modes`). From nominal lengths a time-domain fit falls into a
+model the recorded frequencies (`modes`), or after an actuator move the recorded static response
+to it (`static_shift`). From nominal lengths a time-domain fit falls into a
 wrong minimum: on the Triskele-bot 2 % of rod length moves the modes from 86-155 Hz to 19-84 Hz.
 
 **Residuals.** ``(camera model - recording) / sigma`` per frame and column, with ``sigma`` the
@@ -387,7 +388,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     if actuated:
         rec = problem.rec
         t_move = float(np.min(problem.scene.actuation.start))
-        late = rec.t >= max(settle_from, t_from)
+        late = rec.t >= min(max(settle_from, t_from), 0.5 * (t_from + rec.t[-1]))  # a short recording: its second half
         shift = modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(rec.pose[rec.t < t_move], axis=0)
         target = np.array([np.hypot(shift[0], shift[1]), abs(shift[2])])
         if progress is not None:
@@ -506,7 +507,8 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
                 progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
             )
         except FitError as e:
-            vals = {u.name: np.round(np.asarray(v, float), 9).tolist() for u in problem.unknowns for v in [problem.to_values(jnp.asarray(theta))[u.name]]}
+            at = problem.to_values(jnp.asarray(theta))
+            vals = {u.name: np.round(np.asarray(at[u.name], float), 9).tolist() for u in problem.unknowns}
             raise FitError(f"{problem.rec.path}: {label}: {e}; values {vals}. A smaller [solver] dt in the sidecar or other start values (--tau0) may help") from None
         resume = None
         total_it += it

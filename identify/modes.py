@@ -12,6 +12,9 @@ of ``L`` consecutive frames (those with a missing frame are skipped, so decoding
 harm), the row space truncated to ``order`` by an SVD, and the eigenvalues ``z = exp(s / f_s)``
 of the shift between the truncated windows. Frames alias the modes (Nyquist 57.2 Hz at 114.44
 frames/s), and so do the poles; model and recording are sampled alike, so they alias alike.
+
+**Settled pose** (`settled`): after an actuator move, the constant a least-squares fit puts
+beside the pencil's damped modes, the equilibrium the motion settles to.
 """
 
 from __future__ import annotations
@@ -103,19 +106,6 @@ def settled(t, pose, frame_rate, order: int):
         cols += [zn.real] + ([zn.imag] if abs(zk.imag) > 1e-12 else [])
     coef = np.linalg.lstsq(np.stack(cols, axis=1), pose, rcond=None)[0]
     return z, coef[0]
-
-
-def step_response(t, pose, frame_rate, t_move: float, t_from: float, order: int = 7):
-    """Features of the motion after an actuator move, none of which depends on the camera's frame:
-    (lowest aliased oscillation frequency Hz, |displacement| m, |rotation| rad) of the pose
-    settled to after ``t_from`` relative to the mean pose before ``t_move``. Model and recording
-    are to be sampled alike (the same frames): the features are then equally biased."""
-    after = np.asarray(t) >= t_from
-    z, end = settled(t[after], pose[after], frame_rate, order)
-    f, d = describe(z, frame_rate)
-    osc = (f > 1e-3 * frame_rate) & (f < 0.49 * frame_rate)
-    shift = end - np.mean(pose[np.asarray(t) < t_move], axis=0)
-    return np.array([np.min(f[osc]) if osc.any() else np.nan, np.hypot(shift[0], shift[1]), abs(shift[2])])
 
 
 def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float | None = None, span: float | None = None):
