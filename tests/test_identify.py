@@ -169,8 +169,8 @@ def test_recording_with_the_scenes_own_values_fits_back_unchanged(tmp_path):
     spec.update(seconds=0.5, truth=truth)
     rec = load_recording(gen.generate("cantilever_release", spec, tmp_path))
     pb = Problem(rec, ("tau", "lengths"))
-    nominal = pb.to_values(pb.to_theta(pb.initial_values))
-    assert float(nominal["tau"]) == truth["tau"] and float(nominal["lengths"]) == truth["lengths"]  # the scene's own values
+    start = pb.initial_values
+    assert float(start["tau"]) == truth["tau"] and float(start["lengths"]) == truth["lengths"]  # the scene's own values
     res = fit(pb, state_dir=tmp_path)
     _check_fit(res, rec)
     assert abs(res.values["push_force"][1] - truth["push_force"][1]) < 3 * res.standard_errors["push_force"][1]
