@@ -107,16 +107,25 @@ def planar_pose(scene, traj):
     return jnp.stack([traj.position[:, 0], traj.position[:, 1], traj.rotation_vector[:, 2]], axis=1)
 
 
+def _moves(scene) -> list:
+    """(start, end) times (s) of each actuator move (a table: its time range; constants: none)."""
+    if is_rod(scene):
+        return []
+    a = scene.actuation
+    if a.table_t is not None:
+        return [(float(a.table_t[0]), float(a.table_t[-1]))]
+    return [(float(a.start[i]), float(a.start[i] + (a.duration[i] if k != "step" else 0.0))) for i, k in enumerate(a.kinds) if k != "constant"]
+
+
+def forcing_start(scene) -> float:
+    """Time (s) the first actuator move starts (0 if none: the robot rests before it)."""
+    return min((m[0] for m in _moves(scene)), default=0.0)
+
+
 def forcing_end(scene) -> float:
     """Time (s) after which nothing drives the robot (free motion): the end of the actuators'
     moves (tables: their last time), else 0 (a push released at t = 0, or nothing)."""
-    if is_rod(scene):
-        return 0.0
-    a = scene.actuation
-    if a.table_t is not None:
-        return float(a.table_t[-1])
-    ends = [float(a.start[i] + (a.duration[i] if k not in ("constant", "step") else 0.0)) for i, k in enumerate(a.kinds) if k != "constant"]
-    return max(ends, default=0.0)
+    return max((m[1] for m in _moves(scene)), default=0.0)
 
 
 def required_duration(rec: Recording, margin: float = 0.02) -> float:

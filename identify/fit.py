@@ -387,10 +387,9 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     i_len = problem.slices["lengths"]
     if actuated:
         rec = problem.rec
-        t_move = float(np.min(problem.scene.actuation.start))
         late = rec.t >= min(max(settle_from, t_from), 0.5 * (t_from + rec.t[-1]))  # a short recording: its second half
-        shift = modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(rec.pose[rec.t < t_move], axis=0)
-        target = np.array([np.hypot(shift[0], shift[1]), abs(shift[2])])
+        before = rec.pose[rec.t < experiment.forcing_start(problem.scene)]
+        target = np.asarray(frame_invariant(modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(before, axis=0)))
         if progress is not None:
             progress(f"modal start: static response to the move {target[0] * 1e6:.4g} um, {target[1] * 1e6:.4g} urad", 0, None, None)
         model_shift = static_shift(problem.scene)
@@ -430,20 +429,27 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     return best
 
 
+def frame_invariant(shift):
+    """(|displacement|, |rotation|) of a change ``shift`` (3,) of planar pose: the same in every
+    pattern frame."""
+    return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
+
+
 def static_shift(scene):
-    """Jitted ``log lengths -> (|displacement|, |rotation|)`` of the static equilibrium after the
-    actuators' moves relative to the one before (planar pose, m and rad)."""
-    act = scene.actuation
-    end = act(jnp.asarray(experiment.forcing_end(scene)))
-    held = Actuation(initial=end, final=end, start=act.start * 0, duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0])
+    """Jitted ``log lengths -> frame_invariant`` of the static equilibrium after the actuators'
+    moves relative to the one before (m and rad)."""
+    end = scene.actuation(jnp.asarray(experiment.forcing_end(scene)))
+    held = Actuation(initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0])
     after = eqx.tree_at(lambda s: s.actuation, scene, held)
+
+    def planar(s, lengths):
+        st = pcrjax.solve_static(experiment.apply(s, {"lengths": lengths}), throw=False)
+        return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
 
     @jax.jit
     def shift(log_lengths):
-        a, b = (pcrjax.solve_static(experiment.apply(s, {"lengths": jnp.exp(log_lengths)}), throw=False) for s in (scene, after))
-        d = b.position[:2] - a.position[:2]
-        ok = a.converged & b.converged
-        return jnp.where(ok, jnp.stack([jnp.hypot(d[0], d[1]), jnp.abs(b.rotation_vector[2] - a.rotation_vector[2])]), jnp.nan)
+        (a, ok_a), (b, ok_b) = planar(scene, jnp.exp(log_lengths)), planar(after, jnp.exp(log_lengths))
+        return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
 
     return shift
 
