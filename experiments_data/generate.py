@@ -33,13 +33,16 @@ from identify import camera, experiment  # noqa: E402
 from identify.recording import OVERRIDES, Recording, load_recording, write_recording  # noqa: E402
 
 SOLVER_TRISKELE = dict(nodes=10, integrator="rk4", dt=5e-4, alpha=-0.45, tol=1e-10)
-# Oscillations of the 90-160 Hz platform modes decay within about a second: zeta = omega tau / 2
-# = 0.006-0.01 at tau = 2e-5 s (exp(-zeta omega t) < e^-4 at t = 1 s).
-TRISKELE_TRUTH = dict(tau=2e-5, lengths=[0.0312, 0.0329, 0.0308])
+# At the truth lengths the platform's lowest modes are 18.9, 46.8 and 84.7 Hz (the last aliased
+# to 29.7 Hz by the camera). Kelvin-Voigt damping decays each at tau omega^2 / 2: tau = 0.4 ms
+# gives 2.8 /s for the lowest (e^-2.8 within 1 s: the oscillations decay within about a second,
+# as the issue asks), 17 /s and 57 /s for the others.
+TRISKELE_TRUTH = dict(tau=4e-4, lengths=[0.0312, 0.0329, 0.0308])
 
-# The thesis's camera (5.1.2) on the Triskele-bot, 2 s, nominal damping 1e-5 s switched on.
+# The thesis's camera (5.1.2) on the Triskele-bot, 2 s, nominal damping 0.15 ms switched on
+# (the fits start from a factor 3 off the truth, as the issue asks).
 TRISKELE_CAMERA = dict(scene="triskele", frame_rate=114.44, exposure=2e-4, seconds=2.0, solver=SOLVER_TRISKELE,
-                       effects=dict(damping=True), rod=dict(tau=1e-5))
+                       effects=dict(damping=True), rod=dict(tau=1.5e-4))
 
 RECORDINGS = {
     "triskele_push_release": dict(
@@ -58,9 +61,6 @@ RECORDINGS = {
         "(fast, yet no fibre is pushed near its 32 mN buckling load), 2 s.",
         load=dict(force=[0.0, 0.0, 0.0], moment=[0.0, 0.0, 0.0]),
         actuation=dict(initial=[0.0, 0.0, 0.0], final=[1e-5, -5e-6, 2.5e-6], kind="smooth_step", start_time=0.05, duration=0.01),
-        # dt 0.25 ms: at 0.5 ms the Newton solves fail 10 ms after the move for the nominal
-        # lengths (32 mm each), where a fit of this recording starts
-        solver=dict(SOLVER_TRISKELE, dt=2.5e-4),
         truth=dict(TRISKELE_TRUTH, frame_offset=[-0.9e-3, 2.1e-3], frame_rotation=-0.035, time_offset=2.4e-3,
                    noise_position=2e-9, noise_angle=2e-6, missing_fraction=0.03, seed=12),
     ),

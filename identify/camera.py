@@ -6,8 +6,8 @@
   unknown delay between the actuator command, robot time 0, and the first frame).
 * **Exposure**: each frame averages the motion over its exposure window (0.2 ms), by 3-point
   Gauss-Legendre quadrature of a Catmull-Rom (C1 cubic) interpolant of the simulated samples.
-  114.44 frames/s puts Nyquist at 57.2 Hz, so the 90-160 Hz platform modes alias: the model is
-  compared at the frame times, never step by step.
+  114.44 frames/s puts Nyquist at 57.2 Hz, so the Triskele's third platform mode (85 Hz) aliases
+  (to 30 Hz): the model is compared at the frame times, never step by step.
 
 All functions are pure jnp and differentiable in every argument (offsets, rotation, time offset).
 """

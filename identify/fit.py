@@ -130,6 +130,8 @@ class Problem:
         # compiled once per problem: sigma and the window are arguments
         self._residual = jax.jit(self._residual_fn)
         self._residual_and_jacobian = jax.jit(self._residual_and_jacobian_fn)
+        self._camera_residual = jax.jit(self._seen_residual_fn)
+        self._camera_jacobian = jax.jit(jax.jacfwd(self._seen_residual_fn, argnums=2))
         self.initial_values = self._initial_values(nom, initial or {})
 
     # -- parameter vector <-> values ----------------------------------------------------------
@@ -196,12 +198,14 @@ class Problem:
         offset, rotation = frame_transform(motion[0], vals)
         return camera.observe(motion, self.scene.solver.dt, self.t, self.rec.exposure, offset, rotation, vals["time_offset"])
 
+    def _seen_residual_fn(self, motion, theta_phys, theta_cam, sigma, mask):
+        return ((self._observe(motion, theta_phys, theta_cam) - self.data) * (mask[:, None] / sigma)).reshape(-1)
+
     def _residual_fn(self, theta, sigma, mask, active):
         tp, tc = self._split(theta)
         motion, ok = self._motion(tp, tc, active)
-        seen = self._observe(motion, tp, tc)
         # a rollout whose Newton solves failed is no model of anything: NaN, never a residual
-        return jnp.where(ok, ((seen - self.data) * (mask[:, None] / sigma)).reshape(-1), jnp.nan), jnp.where(ok, motion, jnp.nan)
+        return jnp.where(ok, self._seen_residual_fn(motion, tp, tc, sigma, mask), jnp.nan), jnp.where(ok, motion, jnp.nan)
 
     def _residual_and_jacobian_fn(self, theta, sigma, mask, active):
         tp, tc = self._split(theta)
@@ -245,6 +249,22 @@ class Problem:
         tc = jnp.asarray(theta[n:])
         d_m0, d_tc = jax.jacfwd(f, argnums=(0, 1))(jnp.asarray(m0), tc)
         return np.asarray(f(jnp.asarray(m0), tc)), np.concatenate([np.asarray(d_m0) @ dm0, np.asarray(d_tc)], axis=1)
+
+    def fit_camera(self, theta, t_end=None, max_iter: int = 10):
+        """(``theta`` with its camera unknowns fitted to the frames up to ``t_end``, the cost
+        there): Levenberg-Marquardt on the camera unknowns alone, the motion held at ``theta``'s
+        (one rollout; the camera's Jacobian costs none). Cost inf where the rollout fails."""
+        theta = np.asarray(theta, float)
+        n, sigma = self.n_physical, jnp.asarray(self.sigma)
+        mask, active = self.window(t_end)
+        motion = self._residual(jnp.asarray(theta), sigma, mask, active)[1]
+        if not bool(jnp.all(jnp.isfinite(motion))):
+            return theta, math.inf
+        tp = jnp.asarray(theta[:n])
+        rf = lambda tc: self._camera_residual(motion, tp, tc, sigma, mask)  # noqa: E731
+        rj = lambda tc: (rf(tc), self._camera_jacobian(motion, tp, tc, sigma, mask))  # noqa: E731
+        tc, _, r, _, _, _ = levenberg_marquardt(rf, rj, theta[n:], max_iter, ftol=1e-8, max_step=self.max_step[n:])
+        return np.concatenate([theta[:n], tc]), 0.5 * float(r @ r)
 
     def seen(self, theta, t_end=None):
         """Camera poses (M, 3) at ``theta`` (frames after ``t_end``: the recording's own)."""
@@ -356,28 +376,39 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
     return np.asarray(theta), history
 
 
-def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, screen_window: float = 0.2, screen_iter: int = 8, settle_from: float = 0.6):
+# Free motion: the modes whose frequencies the modal start matches. Kelvin-Voigt damping decays a
+# mode at tau omega^2 / 2, so when the lowest lasts a second the third lasts a few frames of a
+# 114 frames/s film (Triskele: 18.9, 46.8 and 84.7 Hz decay at 2.8, 17 and 57 /s); its pole
+# estimate is noise that drags the unaliasing of the others with it.
+FREE_MODES = 2
+
+
+def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, screen_window: float = 0.2, screen_iter: int = 8, screen_best: int = 2,
+                settle_from: float = 0.6):
     """Start values of damping and lengths from the recording's modes (`modes`).
 
     The damping time comes from the decay of the recorded modes. Lengths: Newton on features
     that do not depend on the camera's frame and clock, until the model's equal the recording's,
     from the nominal lengths and from six starts ``spread`` away (each rod in turn longer, then
     shorter; the features alone do not determine lengths: several sets of lengths share them).
-    The features are the lowest frequencies (one per rod) of free motion; after an actuator move
+    The features are the lowest ``FREE_MODES`` frequencies (at most one per rod) of free motion; after an actuator move
     they are the static response to the move (|displacement| and |rotation| between the
     equilibria before and after it: `static_shift` for the model, `modes.settled` after
     ``settle_from`` s for the recording), which are smooth in the lengths and need no rollout;
     at the camera's 114 frames/s, frequencies estimated from a few cycles jump between aliased
-    modes as lengths change. Each distinct solution is screened by a short
-    Levenberg-Marquardt fit of the first ``screen_window`` seconds after the forcing, which
-    mode shapes and amplitudes decide; the best is returned. ``progress(stage, i, loss, step)``,
-    loss and step None for a message."""
+    modes as lengths change. The distinct solutions are ranked by the loss over the first
+    ``screen_window`` seconds after the forcing with the camera unknowns fitted (one rollout
+    each, `Problem.fit_camera`); the ``screen_best`` best are screened by a short
+    Levenberg-Marquardt fit of all unknowns on that window, which mode shapes and amplitudes
+    decide, and the best is returned. ``progress(stage, i, loss, step)``, loss and step None for
+    a message."""
     theta = np.array(theta, float)
     t_from = experiment.forcing_end(problem.scene)
     n_rods = int(np.size(problem.fixed["lengths"]))
     actuated = t_from > 0.0
     tau_nominal = float(np.mean(problem.fixed["tau"]))
-    target, tau0 = modes.recorded_modes(problem.rec, t_from, 1 if actuated else n_rods, 2 * n_rods + 1, tau_range=(tau_nominal / 10, tau_nominal * 10))
+    n_modes = 1 if actuated else min(n_rods, FREE_MODES)
+    target, tau0 = modes.recorded_modes(problem.rec, t_from, n_modes, 2 * n_modes + 1, tau_range=(tau_nominal / 10, tau_nominal * 10))
     if progress is not None:
         progress(f"modal start: recorded modes {', '.join(f'{f:.2f}' for f in target)} Hz, tau {tau0:.4g} s", 0, None, None)
     if "tau" in problem.slices:
@@ -399,7 +430,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
         def features_of(x):
             th = theta.copy()
             th[i_len] = x
-            return modes.simulated_frequencies(problem.motion(th, 0.4), problem.scene.solver.dt, n_rods)
+            return modes.simulated_frequencies(problem.motion(th, 0.4), problem.scene.solver.dt, n_modes)
 
     x0 = theta[i_len]
     starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
@@ -412,16 +443,28 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
             found.append(x)
     if not found:
         raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})")
-    best, best_cost = None, np.inf
-    for j, x in enumerate(found):
+    t_screen = t_from + screen_window
+    ranked = []
+    for x in found:
         th = theta.copy()
         th[i_len] = x
+        th, cost = problem.fit_camera(th, t_screen)
+        if progress is not None:
+            progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm, camera fitted", len(ranked) + 1, cost, 0.0)
+        ranked.append((cost, len(ranked), th))
+    ranked = [c for c in sorted(ranked, key=lambda c: c[:2]) if np.isfinite(c[0])][:screen_best]
+    if not ranked:
+        raise FitError(f"{problem.rec.path}: the simulation fails at every set of lengths that gives the recorded features")
+    if len(ranked) == 1:
+        return ranked[0][2]
+    best, best_cost = None, np.inf
+    for j, (_, _, th) in enumerate(ranked):
         try:
-            th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, t_from + screen_window), lambda a: problem.residual_and_jacobian(a, None, t_from + screen_window), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
+            th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, t_screen), lambda a: problem.residual_and_jacobian(a, None, t_screen), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
         except FitError:  # the simulation fails there: not a candidate
             continue
         if progress is not None:
-            progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm", j + 1, hist[-1], 0.0)
+            progress(f"candidate lengths {np.round(np.exp(th[i_len]) * 1e3, 3).tolist()} mm, screened", j + 1, hist[-1], 0.0)
         if hist[-1] < best_cost:
             best, best_cost = th, hist[-1]
     if best is None:

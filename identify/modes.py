@@ -1,7 +1,7 @@
 r"""Modal initialisation: the damped modes a recording shows, and model parameters that show the same.
 
 An oscillating recording's loss has a minimum every cycle of phase error, so a fit started from
-nominal rod lengths (a few percent off, which moves the 90-160 Hz platform modes by a few Hz)
+nominal rod lengths (a few percent off, which moves the Triskele's 19-85 Hz platform modes by a few Hz)
 lands in a wrong minimum. The poles of the motion (frequency and decay of each mode) do not
 depend on the phase, the amplitude, the push or the camera's frame and clock: they depend on
 the damping and the lengths only. So the fit first moves those until the model's poles match the
