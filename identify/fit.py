@@ -443,6 +443,9 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
             found.append(x)
     if not found:
         raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})")
+    if len(found) == 1:
+        theta[i_len] = found[0]
+        return theta
     t_screen = t_from + screen_window
     ranked = []
     for x in found:
@@ -453,9 +456,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
             progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm, camera fitted", len(ranked) + 1, cost, 0.0)
         ranked.append((cost, len(ranked), th))
     ranked = [c for c in sorted(ranked, key=lambda c: c[:2]) if np.isfinite(c[0])][:screen_best]
-    if not ranked:
-        raise FitError(f"{problem.rec.path}: the simulation fails at every set of lengths that gives the recorded features")
-    if len(ranked) == 1:
+    if len(ranked) == 1:  # the others' simulations fail
         return ranked[0][2]
     best, best_cost = None, np.inf
     for j, (_, _, th) in enumerate(ranked):

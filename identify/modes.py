@@ -111,7 +111,9 @@ def settled(t, pose, frame_rate, order: int):
 def simulated_frequencies(motion, dt, n_modes: int, order: int = 9, rate: float | None = None, span: float | None = None):
     """The ``n_modes`` lowest frequencies (Hz) of a simulated motion (T, 3) sampled every ``dt``,
     resampled at about ``rate`` (None: every sample; no aliasing below rate/2), pencil windows of
-    ``span`` s (None: 40 samples)."""
+    ``span`` s (None: 40 samples). NaN where the motion is not finite (a failed simulation)."""
+    if not np.all(np.isfinite(motion)):
+        return np.full(n_modes, np.nan)
     sub = 1 if rate is None else max(1, int(round(1.0 / (rate * dt))))
     x, h = motion[::sub], dt * sub
     f, d = describe(poles(np.arange(x.shape[0]) * h, x, 1.0 / h, order, 40 if span is None else int(round(span / h))), 1.0 / h)
@@ -138,9 +140,9 @@ def match_frequencies(features_of, x0, target, max_iter: int = 20, max_step: flo
             e = x.copy()
             e[k] += h
             J[:, k] = (np.log(features_of(e) / target) - res) / h
-        step = np.linalg.lstsq(J, -res, rcond=None)[0]
-        if not np.all(np.isfinite(step)):
+        if not np.all(np.isfinite(J)):  # a neighbour's simulation failed
             return x, False
+        step = np.linalg.lstsq(J, -res, rcond=None)[0]
         last = step * min(1.0, max_step / max(np.max(np.abs(step)), 1e-300))
         x += last
     res = np.log(features_of(x) / target)

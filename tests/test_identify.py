@@ -59,6 +59,22 @@ def test_settled_pose_is_the_constant_beside_damped_oscillations():
     assert abs(np.mean(pose[:, 2]) - end[2]) > 1e-7  # what a plain mean would have said
 
 
+def test_frequency_matching_stops_where_the_simulation_fails():
+    """Lengths whose rollout fails (NaN motion) give NaN frequencies, and the matching stops
+    there unconverged instead of crashing or stepping on garbage."""
+    dt = 5e-4
+    t = np.arange(800)[:, None] * dt
+    good = np.cos(2 * np.pi * 20.0 * t) * np.exp(-2.0 * t) * np.ones((1, 3))
+    np.testing.assert_allclose(modes.simulated_frequencies(good, dt, 1), [20.0], rtol=1e-6)
+    bad = good.copy()
+    bad[300:] = np.nan
+    assert np.all(np.isnan(modes.simulated_frequencies(bad, dt, 1)))
+    for fails_above in (0.5, 1.00005):  # at the start, at its finite-difference neighbour
+        features = lambda x: modes.simulated_frequencies(good if x[0] < fails_above else bad, dt, 1)  # noqa: E731
+        x, ok = modes.match_frequencies(features, np.array([1.0]), np.array([21.0]))
+        assert not ok and x[0] == 1.0
+
+
 def test_levenberg_marquardt_refuses_a_start_where_the_model_fails():
     """A residual that is NaN at the start (a rollout whose Newton solves failed) is reported,
     not returned as a converged fit."""
