@@ -17,6 +17,7 @@ seconds: iterations until the loss is within 1 % of the best either reached.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import jax.numpy as jnp
@@ -94,10 +95,14 @@ def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
     runs = {"levenberg-marquardt": hist_lm}
     for lr in learning_rates:
         t0 = time.perf_counter()
-        _, hist = adam(lambda th: pb._residual_fn(th, sigma, mask, active)[0], start, adam_steps, lr)
+        report = lambda k, loss, step: print(f"  Adam lr={lr:g} step {k}: loss {loss:.6g}", flush=True) if k % 25 == 0 else None  # noqa: E731
+        _, hist = adam(lambda th: pb._residual_fn(th, sigma, mask, active)[0], start, adam_steps, lr, progress=report)
         runs[f"adam lr={lr:g}"] = hist
-        print(f"Adam (learning rate {lr:g}): {adam_steps} steps, loss {hist[0]:.4g} -> {min(hist):.6g}, {time.perf_counter() - t0:.0f} s", flush=True)
-    target = 1.01 * min(min(h) for h in runs.values())
+        fate = f"stopped at step {len(hist)}: the simulation failed there (NaN loss)" if not np.isfinite(hist[-1]) else f"{adam_steps} steps"
+        finite = [c for c in hist if np.isfinite(c)] or [math.nan]
+        print(f"Adam (learning rate {lr:g}): {fate}, loss {hist[0]:.4g} -> best {min(finite):.6g}, last finite {finite[-1]:.6g}, "
+              f"{time.perf_counter() - t0:.0f} s", flush=True)
+    target = 1.01 * min(np.nanmin(h) for h in runs.values())
     for name, h in runs.items():
         hit = next((k for k, c in enumerate(h) if c <= target), None)
         print(f"{name:>22}: iterations to within 1 % of the best loss: {hit if hit is not None else f'not within {len(h) - 1}'}")
@@ -109,11 +114,13 @@ def main(argv=None):
     p.add_argument("what", choices=("accuracy", "optimizers"))
     p.add_argument("recording", nargs="?", default="experiments_data/triskele_push_release.csv")
     p.add_argument("--window", type=float, default=0.2, help="optimizers: seconds of the recording fitted")
+    p.add_argument("--adam-steps", type=int, default=200, help="optimizers: Adam steps per learning rate")
+    p.add_argument("--learning-rates", default="0.01,0.1", help="optimizers: Adam learning rates, comma-separated")
     args = p.parse_args(argv)
     if args.what == "accuracy":
         accuracy(args.recording)
     else:
-        optimizers(args.recording, args.window)
+        optimizers(args.recording, args.window, args.adam_steps, tuple(float(v) for v in args.learning_rates.split(",")))
 
 
 if __name__ == "__main__":

@@ -358,7 +358,9 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
 
 
 def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
-    """Minimise ``0.5 |fun(theta)|^2`` with optax Adam (reverse-mode gradients); for comparison."""
+    """Minimise ``0.5 |fun(theta)|^2`` with optax Adam (reverse-mode gradients); for comparison.
+    Stops at a non-finite loss (a step into parameters where the simulation fails: Adam has no
+    way to reject a step), the NaN last in the history."""
     import optax
 
     loss = jax.jit(jax.value_and_grad(lambda th: 0.5 * jnp.sum(fun(th) ** 2)))
@@ -369,6 +371,8 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
     for k in range(steps):
         val, g = loss(theta)
         history.append(float(val))
+        if not np.isfinite(history[-1]):
+            break
         upd, state = opt.update(g, state)
         theta = optax.apply_updates(theta, upd)
         if progress is not None:
