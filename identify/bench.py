@@ -1,4 +1,4 @@
-"""Identification figures (printed, never asserted): ``python -m identify.bench accuracy|optimizers``.
+"""Identification figures (printed, never asserted): ``python -m identify.bench accuracy|correlation|optimizers``.
 
 ``accuracy RECORDING``: how well damping, rod lengths and the pattern frame are determined by a
 recording of length T with a fraction of its frames missing. One Problem (one compiled residual and
@@ -8,6 +8,9 @@ Levenberg-Marquardt from the optimum of the whole recording, with the true noise
 table gives the error against the generating values and the reported standard error.
 This measures what the data determine, given that the fit is in the right basin (the full fit
 from nominal values, `fit.fit`, is what gets it there).
+
+``correlation RECORDING``: the correlation matrix of the fitted unknowns at the whole recording's
+optimum (true noise levels): how much damping, lengths and nuisances trade off.
 
 ``optimizers RECORDING``: Levenberg-Marquardt against optax Adam from the same start (truth with
 damping x1.5 and lengths +0.3 %, in the basin of the true minimum) on the first ``--window``
@@ -43,16 +46,39 @@ def _lm(pb, theta, t_end, max_iter=30):
     return levenberg_marquardt(lambda th: pb.residual(th, None, t_end), lambda th: pb.residual_and_jacobian(th, None, t_end), theta, max_iter, max_step=pb.max_step)
 
 
+def _problem(path) -> Problem:
+    """The fit of damping and lengths to a synthetic recording, with its true noise levels."""
+    rec = load_recording(path)
+    pb = Problem(rec, ("tau", "lengths"))
+    pb.sigma = np.array([rec.truth["noise_position"]] * 2 + [rec.truth["noise_angle"]])
+    return pb
+
+
+def _optimum(path):
+    """(Problem, LM's result from the generating values on the whole recording)."""
+    pb = _problem(path)
+    t0 = time.perf_counter()
+    out = _lm(pb, _truth_theta(pb), None)
+    print(f"{pb.rec.path}: optimum of the whole recording in {time.perf_counter() - t0:.0f} s (compilation included)", flush=True)
+    return pb, out
+
+
+def correlation(path):
+    """The correlation matrix of the fitted unknowns at the optimum (what `fit.json` reports)."""
+    pb, (theta, J, r, *_) = _optimum(path)
+    res = summarize(pb, theta, J, r)
+    labels = [s.replace("start_", "s_").replace("lengths", "L").replace("push_", "p_") for s in res.labels]
+    print(" " * 14 + "".join(f"{s:>14}" for s in labels))
+    for s, row in zip(labels, np.asarray(res.correlation)):
+        print(f"{s:>14}" + "".join(f"{c:14.2f}" for c in row))
+    return res
+
+
 def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), seed=0):
     """Cells: the first ``fractions`` of the recording x ``missing`` extra frames dropped."""
-    rec = load_recording(path)
+    pb, (best, *_) = _optimum(path)
+    rec, tr = pb.rec, pb.rec.truth
     lengths = [f * float(rec.t[-1]) for f in fractions]
-    pb = Problem(rec, ("tau", "lengths"))
-    tr = rec.truth
-    pb.sigma = np.array([tr["noise_position"]] * 2 + [tr["noise_angle"]])
-    t0 = time.perf_counter()
-    best, *_ = _lm(pb, _truth_theta(pb), None)
-    print(f"{rec.path}: optimum of the whole recording in {time.perf_counter() - t0:.0f} s (compilation included)", flush=True)
     rng = np.random.default_rng(seed)
     u = rng.random(rec.t.size)
     print(f"{'T s':>5} {'extra missing':>13} {'frames':>6} | {'tau err %':>9} {'SE %':>7} | {'max |dL| um':>11} {'max SE um':>9} | "
@@ -83,10 +109,7 @@ def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), s
 
 
 def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
-    rec = load_recording(path)
-    pb = Problem(rec, ("tau", "lengths"))
-    tr = rec.truth
-    pb.sigma = np.array([tr["noise_position"]] * 2 + [tr["noise_angle"]])
+    pb = _problem(path)
     start = _truth_theta(pb, 1.5, 1.003)
     t0 = time.perf_counter()
     _, _, _, it_lm, conv, hist_lm = _lm(pb, start, window, 50)
@@ -111,7 +134,7 @@ def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
 
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m identify.bench", description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=("accuracy", "optimizers"))
+    p.add_argument("what", choices=("accuracy", "correlation", "optimizers"))
     p.add_argument("recording", nargs="?", default="experiments_data/triskele_push_release.csv")
     p.add_argument("--window", type=float, default=0.2, help="optimizers: seconds of the recording fitted")
     p.add_argument("--adam-steps", type=int, default=200, help="optimizers: Adam steps per learning rate")
@@ -119,6 +142,8 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.what == "accuracy":
         accuracy(args.recording)
+    elif args.what == "correlation":
+        correlation(args.recording)
     else:
         optimizers(args.recording, args.window, args.adam_steps, tuple(float(v) for v in args.learning_rates.split(",")))
 
