@@ -502,6 +502,13 @@ def static_shift(scene):
     return shift
 
 
+# The whole recording's passes stop when an iteration lowers the loss by less than 1e-3 of the
+# current reduced chi-square (relative decrease < FINAL_FTOL / residuals): 0.5 (delta / SE)^2 is
+# what a parameter delta off the optimum adds to a loss whitened by the noise, so the parameters
+# then lie within about 0.05 SE of the optimum.
+FINAL_FTOL = 2e-3
+
+
 def windows(duration: float, first: float = 0.1) -> list:
     """Window end times of the continuation: ``first``, doubling, then the whole recording (None)."""
     out, w = [], first
@@ -557,7 +564,7 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
         try:
             theta, J, r, it, converged, hist = levenberg_marquardt(
                 lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
-                max_iter, ftol=1e-10 if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
+                max_iter, ftol=FINAL_FTOL / problem.counted(None) if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
                 progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
             )
         except FitError as e:
