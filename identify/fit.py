@@ -212,12 +212,11 @@ class Problem:
         w = mask[:, None] / sigma
         # tangents of the motion for the physical unknowns only
         motion, dmotion, ok = jax.vmap(lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,), has_aux=True), out_axes=(None, -1, None))(jnp.eye(tp.size))
-        seen = self._observe(motion, tp, tc)
         # the camera is linear in the motion: push each tangent through it
         d_seen = jax.vmap(lambda dm: jax.jvp(lambda m: self._observe(m, tp, tc), (motion,), (dm,))[1], in_axes=-1, out_axes=-1)(dmotion)
         j_cam = jax.jacfwd(lambda c: self._observe(motion, tp, c))(tc)
         J = jnp.concatenate([d_seen, j_cam], axis=-1) * w[..., None]
-        r = jnp.where(ok, ((seen - self.data) * w).reshape(-1), jnp.nan)
+        r = jnp.where(ok, self._seen_residual_fn(motion, tp, tc, sigma, mask), jnp.nan)
         return r, J.reshape(-1, theta.size), motion[0], dmotion[0]
 
     def residual(self, theta, sigma=None, t_end=None):
