@@ -146,7 +146,7 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     guess = jax.lax.stop_gradient(2.0 * x1 - x2 if extrapolate else x1)
     # If Newton fails from the extrapolated start (e.g. under-damped high modes flipping sign each
     # step), it is retried from the last step's solution with a fresh Jacobian.
-    retry = (lambda z, _s: residual(z), jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
+    retry = (None, jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
     x, jac, stats = newton.solve(residual, guess, state.jac, _colouring(layout), s.newton, ~state.has_jac, retry)
     nodes, _, stages = shoot(layout, x, y0, R_ref, state.history, k, scene.effects, ds, s.integrator, sc, s.unroll, return_stages=True)
     z, history = rod_history.after_step(co, state.history, k, scene.effects, nodes, stages, state.z_prev)

@@ -4,11 +4,12 @@
 iterations), refreshes it when the contraction is poor or the line search fails, and reports its
 iterations and final residual instead of raising, so failures travel as data through `lax.scan`
 and are reported once at the end (as diffrax does). Gradients never unroll the iterations:
-`jax.lax.custom_root` applies the implicit function theorem with the exact Jacobian at the root.
+`_implicit` applies the implicit function theorem with the exact Jacobian at the root.
 """
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable
 
 import equinox as eqx
@@ -152,58 +153,75 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
     return x, jac, Stats(iterations=jnp.asarray(it), residual=nrm, jacobians=jnp.asarray(nj), evaluations=jnp.asarray(ev))
 
 
-def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None, tangent_jac_fn=None):
+def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
-    ``jac_fn(f, x)`` gives the Jacobian of ``f`` at ``x`` (used both by the forward Newton and, on
-    the linearised function, for the tangent solve of the implicit function theorem, unless
-    ``tangent_jac_fn`` is given for the latter: a ``jac_fn`` that exploits the structure of one
-    particular residual cannot serve the linearised function).
+    ``jac_fn(f, x)`` gives the exact Jacobian of ``f`` at ``x``; it serves the forward Newton and,
+    at the root, the tangent solve of the implicit function theorem: ``dx = -J^{-1} (df/dp) dp``
+    for every value ``p`` that ``fn`` closes over (`_implicit`). A ``jac_fn`` may exploit the
+    structure of ``fn`` (the parallel robot's leg-by-leg Jacobian); `jax.lax.custom_root`, used
+    before, passes the tangent solve only the linearised function, whose dense Jacobian (21
+    forward passes of the Triskele-bot's residual per step) dominated the cost of a rollout's
+    tangents, and traced that solve even where nothing was differentiated.
+
+    ``fn`` and ``jac_fn(fn, .)`` are traced once each (`jax.closure_convert`); the Newton loop
+    and the tangent rule evaluate those traces. The forward solve sees its inputs through
+    ``stop_gradient``: no tangent flows through its iterations.
 
     ``fallback``, if given, is ``(homotopy, s, starts, chain)``: stages tried in order only while
     the solve has not converged (traced once, run only if needed). Stage k solves
-    ``homotopy(x, s[k]) = 0`` (with ``homotopy(x, 1) == fn(x)``) from ``starts[k]``, or, where
-    ``chain[k]``, from stage k-1's result, with a fresh Jacobian. Load continuation and a restart
-    from the previous time step are both written this way.
+    ``homotopy(x, s[k]) = 0`` (with ``homotopy(x, 1) == fn(x)``; None: ``fn`` itself) from
+    ``starts[k]``, or, where ``chain[k]``, from stage k-1's result, with a fresh Jacobian. Load
+    continuation and a restart from the previous time step are both written this way.
     """
+    f_conv, f_consts = jax.closure_convert(fn, x0)
+    j_conv, j_consts = jax.closure_convert(lambda x: jac_fn(fn, x), x0)
+    fixed = lambda consts: [jax.lax.stop_gradient(c) for c in consts]  # noqa: E731
+    f_fc, j_fc = fixed(f_consts), fixed(j_consts)
+    f = lambda x: f_conv(x, *f_fc)  # noqa: E731
+    jac_f = lambda _f, x: j_conv(x, *j_fc)  # noqa: E731
+    x0, jac0 = jax.lax.stop_gradient((x0, jac0))
 
-    def forward(f, guess):
-        x, jac, stats = newton(f, guess, jac0, jac_fn, settings, need_jacobian)
-        if fallback is None:
-            return x, (jac, stats)
+    x, jac, stats = newton(f, x0, jac0, jac_f, settings, need_jacobian)
+    if fallback is not None:
         homotopy, svals, starts, chain = fallback
+        if homotopy is None:
+            stage_fn, stage_jac = lambda _s: f, jac_f
+        else:
+            h_conv, h_consts = jax.closure_convert(homotopy, x0, svals[0])
+            h_fc = fixed(h_consts)
+            stage_fn, stage_jac = (lambda s: lambda z: h_conv(z, s, *h_fc)), jac_fn
 
         def stage(carry, inp):
             x, jac, done, total = carry
             s, start, from_prev = inp
 
             def run():
-                x2, jac2, st = newton(lambda z: homotopy(z, s), jnp.where(from_prev, x, start), jac, jac_fn, settings, True)
+                x2, jac2, st = newton(stage_fn(s), jnp.where(from_prev, x, start), jac, stage_jac, settings, True)
                 return x2, jac2, (s == 1.0) & (st.residual <= settings.tol), accumulate(total, st)
 
             return jax.lax.cond(done, lambda: (x, jac, done, total), run), None
 
         done = stats.residual <= settings.tol
-        (x, jac, _, total), _ = jax.lax.scan(stage, (x, jac, done, stats), (svals, starts, chain))
-        return x, (jac, total)
+        (x, jac, _, stats), _ = jax.lax.scan(stage, (x, jac, done, stats), jax.lax.stop_gradient((svals, starts, chain)))
+    return _implicit(f_conv, j_conv, x, f_consts, j_consts), jac, stats
 
-    tjac = jac_fn if tangent_jac_fn is None else tangent_jac_fn
 
-    def tangent_solve(g, y):
-        return Jacobian.factor(tjac(g, y)).solve(y)
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _implicit(f_conv, j_conv, x, f_consts, j_consts):
+    """``x``, a root of ``f_conv(., *f_consts)``, with the tangent of the implicit function theorem
+    (``x``'s own tangent is ignored: the root does not depend on where Newton started)."""
+    return x
 
-    # custom_root gives integer auxiliary outputs integer tangents, which JAX then rejects; the
-    # integers (LU pivots, counters) therefore cross it as floats and are cast back here.
-    def forward_float(f, guess):
-        x, aux = forward(f, guess)
-        return x, jax.tree.map(lambda a: a.astype(x.dtype), aux)
 
-    x, aux = jax.lax.custom_root(fn, x0, forward_float, tangent_solve, has_aux=True)
-    aux = jax.lax.stop_gradient(aux)
-    jac, stats = aux
-    jac = Jacobian(jac.matrix, jac.lu, jac.piv.astype(jnp.int32), jac.row, jac.col)
-    stats = Stats(stats.iterations.astype(jnp.int32), stats.residual, stats.jacobians.astype(jnp.int32), stats.evaluations.astype(jnp.int32))
-    return x, jac, stats
+@_implicit.defjvp
+def _implicit_jvp(f_conv, j_conv, primals, tangents):
+    x, f_consts, j_consts = primals
+    _, df_consts, _ = tangents
+    x = _implicit(f_conv, j_conv, x, f_consts, j_consts)  # differentiable again (second order)
+    J = Jacobian.factor(j_conv(x, *j_consts))
+    _, rhs = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
+    return x, -J.solve(rhs)
 
 
 def accumulate(total: Stats, st: Stats) -> Stats:

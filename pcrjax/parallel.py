@@ -187,10 +187,6 @@ def _jac_fn(problem: _Problem):
     return lambda _f, x: problem.jacobian(x)
 
 
-def _tangent_jac(g, y):
-    return jax.jacfwd(g)(y)
-
-
 def _leg_R_ref(layout: Layout, nodes):
     """(n, M-1, 3, 3) rotations of each leg at its segment starts."""
     return jax.vmap(lambda nd: segment_rotations(layout, nd))(nodes)
@@ -267,7 +263,7 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     jac_start = newton.Jacobian.factor(problem(jnp.asarray(0.0)).jacobian(x0))
     (x_c, jac_c, cont), _ = jax.lax.scan(stage, (x0, jac_start, zero), lams)
     x_c = jax.lax.stop_gradient(x_c)
-    x, _, stats = newton.solve(prob1.residual, x_c, jax.lax.stop_gradient(jac_c), _jac_fn(prob1), s.newton, False, tangent_jac_fn=_tangent_jac)
+    x, _, stats = newton.solve(prob1.residual, x_c, jac_c, _jac_fn(prob1), s.newton, False)
     stats = newton.accumulate(cont, stats)
     xp, xl = prob1.split(x)
     _, _, nodes = prob1.legs(xl)
@@ -377,8 +373,8 @@ def step(scene, state: StepState, t, extrapolate: bool = True):
     prob = _Problem(scene, cfg, inertia=True)
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2 if extrapolate else x1)
-    retry = (lambda z, _s: prob.residual(z), jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))
-    x, jac, stats = newton.solve(prob.residual, guess, state.jac, _jac_fn(prob), s.newton, ~state.has_jac, retry, tangent_jac_fn=_tangent_jac)
+    retry = (None, jnp.ones(1), jax.lax.stop_gradient(x1)[None], jnp.zeros(1, bool))  # restart from the last step
+    x, jac, stats = newton.solve(prob.residual, guess, state.jac, _jac_fn(prob), s.newton, ~state.has_jac, retry)
     xp, xl = prob.split(x)
     _, _, nodes, stages = prob.legs(xl, return_stages=True)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co, h, k, scene.effects, nd, st, zp)  # noqa: E731
