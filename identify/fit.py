@@ -30,7 +30,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -301,18 +303,19 @@ def _covariance(J):
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
 
 
-def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, max_step=0.5, start: dict | None = None, save=None, progress=None):
+def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, max_step=0.5, start: dict | None = None, save=None, progress=None, initial=None):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
     Steps are bounded to ``max_step`` (a number, or one per unknown: they are O(1), logs and
     typical units), a trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
     state that ``save`` was given) resumes an interrupted run; ``save(state)`` is called after
-    every accepted step. Returns (theta, J, r, iterations, converged, history)."""
+    every accepted step; ``initial``, ``rj(theta0)`` if already known. Returns (theta, J, r,
+    iterations, converged, history)."""
     theta = np.asarray(theta0, float)
     lam, history, it0 = 1e-3, [], 0
     if start is not None:
         theta, lam, history, it0 = np.asarray(start["theta"], float), start["lam"], list(start["history"]), start["iteration"]
-    r, J = (np.asarray(a) for a in rj(jnp.asarray(theta)))
+    r, J = (np.asarray(a) for a in (rj(jnp.asarray(theta)) if initial is None or start is not None else initial))
     cost = 0.5 * float(r @ r)
     if not (np.isfinite(cost) and np.all(np.isfinite(J))):
         raise FitError("the residual or its Jacobian at the start is not finite (a simulation whose Newton solves did not converge)")
@@ -403,8 +406,9 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     ``screen_window`` seconds after the forcing with the camera unknowns fitted (one rollout
     each, `Problem.fit_camera`); the ``screen_best`` best are screened by a short
     Levenberg-Marquardt fit of all unknowns on that window, which mode shapes and amplitudes
-    decide, and the best is returned. ``progress(stage, i, loss, step)``, loss and step None for
-    a message."""
+    decide. Returns (the best, the screening: None, or its ``window`` end, ``candidates``,
+    ``iterations`` and the best's loss ``history``: the fit's windows up to that end are then
+    done). ``progress(stage, i, loss, step)``, loss and step None for a message."""
     theta = np.array(theta, float)
     t_from = experiment.forcing_end(problem.scene)
     n_rods = int(np.size(problem.fixed["lengths"]))
@@ -417,7 +421,7 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     if "tau" in problem.slices:
         theta[problem.slices["tau"]] = np.log(tau0)
     if "lengths" not in problem.slices:
-        return theta
+        return theta, None
     i_len = problem.slices["lengths"]
     if actuated:
         rec = problem.rec
@@ -438,17 +442,23 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     x0 = theta[i_len]
     starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
     found = []
-    for j, x in enumerate(starts):
-        x, ok = modes.match_frequencies(features_of, x, target)
-        if progress is not None:
-            progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded features", j + 1, None, None)
-        if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
-            found.append(x)
+    # The starts are independent: one thread per core (a simulation runs on one core and releases
+    # the GIL). Results are taken in order, so the outcome does not depend on timing. The first
+    # evaluation compiles, before the threads (each would otherwise trace the same program).
+    features_of(x0)
+    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+        matched = [pool.submit(modes.match_frequencies, features_of, x, target) for x in starts]
+        for j, job in enumerate(matched):
+            x, ok = job.result()
+            if progress is not None:
+                progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded features", j + 1, None, None)
+            if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
+                found.append(x)
     if not found:
         raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})")
     if len(found) == 1:
         theta[i_len] = found[0]
-        return theta
+        return theta, None
     t_screen = t_from + screen_window
     ranked = []
     for x in found:
@@ -460,20 +470,21 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
         ranked.append((cost, len(ranked), th))
     ranked = [c for c in sorted(ranked, key=lambda c: c[:2]) if np.isfinite(c[0])][:screen_best]
     if len(ranked) == 1:  # the others' simulations fail
-        return ranked[0][2]
-    best, best_cost = None, np.inf
+        return ranked[0][2], None
+    best, best_hist, iterations = None, [np.inf], 0
     for j, (_, _, th) in enumerate(ranked):
         try:
-            th, _, _, _, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, t_screen), lambda a: problem.residual_and_jacobian(a, None, t_screen), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
+            th, _, _, it, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, t_screen), lambda a: problem.residual_and_jacobian(a, None, t_screen), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
         except FitError:  # the simulation fails there: not a candidate
             continue
+        iterations += it
         if progress is not None:
             progress(f"candidate lengths {np.round(np.exp(th[i_len]) * 1e3, 3).tolist()} mm, screened", j + 1, hist[-1], 0.0)
-        if hist[-1] < best_cost:
-            best, best_cost = th, hist[-1]
+        if hist[-1] < best_hist[-1]:
+            best, best_hist = th, hist
     if best is None:
         raise FitError(f"{problem.rec.path}: the simulation fails at every set of lengths that gives the recorded features")
-    return best
+    return best, dict(window=t_screen, candidates=len(ranked), iterations=iterations, history=best_hist)
 
 
 def frame_invariant(shift):
@@ -534,7 +545,7 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
     state_file = None if state_dir is None else Path(state_dir) / "fit_state.json"
     theta = np.asarray(problem.to_theta(problem.initial_values))
     problem.sigma = NOMINAL_SIGMA.copy()
-    done, history, total_it, resume = 0, [], 0, None
+    done, history, total_it, resume, summary = 0, [], 0, None, []
     if state_file is not None and state_file.is_file():
         st = json.loads(state_file.read_text())
         if st.get("labels") == problem.labels() and st.get("recording") == str(problem.rec.path):
@@ -547,16 +558,31 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
                                                   history_before=history, iterations_before=total_it, lm=lm_state)))
 
     if modal and resume is None:
-        theta = modal_start(problem, theta, progress)
+        # the Jacobian's program (20-40 s of tracing and compiling) is built meanwhile, in a thread
+        with ThreadPoolExecutor(max_workers=1) as background:
+            compiled = background.submit(problem.residual_and_jacobian, theta, None, 0.0)
+            theta, screened = modal_start(problem, theta, progress)
+            compiled.result()
+        if screened is not None:  # the windows it covers are fitted
+            done = sum(1 for _, w in stages if w is not None and w <= screened["window"] + 1e-9)
+            total_it += screened["iterations"]
+            history += screened["history"]
+            summary.append(dict(stage=f"screening of {screened['candidates']} candidates, window {screened['window']:g} s", iterations=screened["iterations"], loss=screened["history"][-1], converged=True))
         resume = dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0)
-        save(resume, 0)  # an interrupted fit resumes after the modal start
-    summary = []
+        save(resume, done)  # an interrupted fit resumes after the modal start
     for k, (label, t_end) in enumerate(stages):
         if k < done:
             continue
+        initial = None
         if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
-            res = (np.asarray(problem.residual(theta)).reshape(-1, 3) * problem.sigma)[problem.keep]
+            # the previous pass's residuals and Jacobian, reweighted, when it ran here: no simulation
+            known = k > done and stages[k - 1][1] is None
+            old = problem.sigma
+            res = ((r if known else np.asarray(problem.residual(theta))).reshape(-1, 3) * old)[problem.keep]
             problem.sigma = np.maximum([np.sqrt(np.mean(res[:, :2] ** 2))] * 2 + [np.sqrt(np.mean(res[:, 2] ** 2))], 1e-15)
+            if known:
+                w = old / problem.sigma
+                initial = ((r.reshape(-1, 3) * w).reshape(-1), (J.reshape(-1, 3, J.shape[1]) * w[None, :, None]).reshape(J.shape))
         sigma = jnp.asarray(problem.sigma)
         final = t_end is None
 
@@ -564,7 +590,7 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
             theta, J, r, it, converged, hist = levenberg_marquardt(
                 lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
                 max_iter, ftol=FINAL_FTOL / problem.counted(None) if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
-                progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
+                progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)), initial=initial,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))
