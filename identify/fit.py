@@ -21,7 +21,7 @@ Gauss-Newton Hessian at the optimum (rescaled by the final reduced chi-square), 
 through the log transforms to standard errors of the values themselves.
 
 **Jacobians** come from `jax.jvp` through the whole rollout for the physical unknowns (each
-Newton solve differentiated implicitly, `jax.lax.custom_root`) and from the camera model alone
+Newton solve differentiated implicitly, `pcrjax.newton.solve`) and from the camera model alone
 for the camera's unknowns.
 """
 
