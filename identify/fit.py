@@ -570,13 +570,14 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
             summary.append(dict(stage=f"screening of {screened['candidates']} candidates, window {screened['window']:g} s", iterations=screened["iterations"], loss=screened["history"][-1], converged=True))
         resume = dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0)
         save(resume, done)  # an interrupted fit resumes after the modal start
+    r = J = None  # the last pass's residuals and Jacobian
     for k, (label, t_end) in enumerate(stages):
         if k < done:
             continue
         initial = None
         if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
             # the previous pass's residuals and Jacobian, reweighted, when it ran here: no simulation
-            known = k > done and stages[k - 1][1] is None
+            known = k > done and stages[k - 1][1] is None and r is not None
             old = problem.sigma
             res = ((r if known else np.asarray(problem.residual(theta))).reshape(-1, 3) * old)[problem.keep]
             problem.sigma = np.maximum([np.sqrt(np.mean(res[:, :2] ** 2))] * 2 + [np.sqrt(np.mean(res[:, 2] ** 2))], 1e-15)
