@@ -558,7 +558,10 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
                                                   history_before=history, iterations_before=total_it, lm=lm_state)))
 
     if modal and resume is None:
-        # the Jacobian's program (20-40 s of tracing and compiling) is built meanwhile, in a thread
+        # The residual's program first (the modal start needs it at once), then the Jacobian's (20-40
+        # s of tracing and compiling) in a thread while the modal start runs: tracing holds the GIL,
+        # the modal start's simulations do not.
+        problem.residual(theta, None, 0.0)
         with ThreadPoolExecutor(max_workers=1) as background:
             compiled = background.submit(problem.residual_and_jacobian, theta, None, 0.0)
             theta, screened = modal_start(problem, theta, progress)
