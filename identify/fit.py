@@ -390,7 +390,7 @@ FREE_MODES = 2
 
 
 def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, screen_window: float = 0.2, screen_iter: int = 8, screen_best: int = 2,
-                settle_from: float = 0.6):
+                settle_from: float = 0.6, warm=None):
     """Start values of damping and lengths from the recording's modes (`modes`).
 
     The damping time comes from the decay of the recorded modes. Lengths: Newton on features
@@ -408,7 +408,9 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     Levenberg-Marquardt fit of all unknowns on that window, which mode shapes and amplitudes
     decide. Returns (the best, the screening: None, or its ``window`` end, ``candidates``,
     ``iterations`` and the best's loss ``history``: the fit's windows up to that end are then
-    done). ``progress(stage, i, loss, step)``, loss and step None for a message."""
+    done). ``progress(stage, i, loss, step)``, loss and step None for a message; ``warm()`` is
+    called once the features are known and the first simulation has compiled (the caller builds
+    the Jacobian's program meanwhile)."""
     theta = np.array(theta, float)
     t_from = experiment.forcing_end(problem.scene)
     n_rods = int(np.size(problem.fixed["lengths"]))
@@ -446,6 +448,8 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     # the GIL). Results are taken in order, so the outcome does not depend on timing. The first
     # evaluation compiles, before the threads (each would otherwise trace the same program).
     features_of(x0)
+    if warm is not None:
+        warm()
     with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
         matched = [pool.submit(modes.match_frequencies, features_of, x, target) for x in starts]
         for j, job in enumerate(matched):
@@ -558,14 +562,18 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
                                                   history_before=history, iterations_before=total_it, lm=lm_state)))
 
     if modal and resume is None:
-        # The residual's program first (the modal start needs it at once), then the Jacobian's (20-40
-        # s of tracing and compiling) in a thread while the modal start runs: tracing holds the GIL,
-        # the modal start's simulations do not.
-        problem.residual(theta, None, 0.0)
-        with ThreadPoolExecutor(max_workers=1) as background:
-            compiled = background.submit(problem.residual_and_jacobian, theta, None, 0.0)
-            theta, screened = modal_start(problem, theta, progress)
-            compiled.result()
+        # The Jacobian's program (20-40 s of tracing and compiling) is built in a thread while the
+        # modal start matches features, once the recording's are known (a recording without modes
+        # is reported before any compilation).
+        background = ThreadPoolExecutor(max_workers=1)
+        try:
+            compiled = []
+            warm = lambda: compiled.append(background.submit(problem.residual_and_jacobian, theta, None, 0.0))  # noqa: E731
+            theta, screened = modal_start(problem, theta, progress, warm=warm)
+            for job in compiled:
+                job.result()
+        finally:  # an error in the modal start is reported at once, not after the compile
+            background.shutdown(wait=False)
         if screened is not None:  # the windows it covers are fitted
             done = sum(1 for _, w in stages if w is not None and w <= screened["window"] + 1e-9)
             total_it += screened["iterations"]

@@ -38,6 +38,8 @@ def poles(t, pose, frame_rate, order: int, window: int = 12):
             w = full[i : i + window, c]
             if np.all(np.isfinite(w)):
                 rows.append(w)
+    if len(rows) <= order:
+        raise ValueError(f"{len(rows)} windows of {window} consecutive frames, more than {order} needed to estimate the modes (a recording too short, or too many frames missing)")
     Y = np.asarray(rows)
     _, _, vt = np.linalg.svd(Y, full_matrices=False)
     V = vt[:order].T  # (window, order): the signal subspace
@@ -82,7 +84,10 @@ def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3, order: int | None
     recording shows after ``t_from`` (poles of ``order``, default ``2 n_modes + 1``; a pole at the
     Nyquist frequency is noise, not a mode)."""
     keep = rec.t >= t_from
-    z = poles(rec.t[keep], rec.pose[keep], rec.frame_rate, order or 2 * n_modes + 1)
+    try:
+        z = poles(rec.t[keep], rec.pose[keep], rec.frame_rate, order or 2 * n_modes + 1)
+    except ValueError as e:
+        raise ValueError(f"{rec.path}: after t = {t_from:g} s: {e}") from None
     f, d = describe(z, rec.frame_rate)
     osc = (f > 1e-3 * rec.frame_rate) & (f < 0.49 * rec.frame_rate) & (d > 0)
     if osc.sum() < n_modes:

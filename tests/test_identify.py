@@ -75,6 +75,14 @@ def test_frequency_matching_stops_where_the_simulation_fails():
         assert not ok and x[0] == 1.0
 
 
+def test_recording_too_short_for_the_modal_start_is_reported_before_compiling():
+    """40 ms of the push-release (5 frames) hold no window of 12 consecutive frames: the fit
+    stops at once with a message that says so (no simulation is compiled first)."""
+    rec = load_recording(f"{DATA}/triskele_push_release.csv").window(0.04)
+    with pytest.raises(ValueError, match="too short"):
+        fit(Problem(rec, ("tau", "lengths")))
+
+
 def test_levenberg_marquardt_refuses_a_start_where_the_model_fails():
     """A residual that is NaN at the start (a rollout whose Newton solves failed) is reported,
     not returned as a converged fit."""
