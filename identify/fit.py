@@ -587,8 +587,9 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
             continue
         initial = None
         if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
-            # the previous pass's residuals and Jacobian, reweighted, when it ran here: no simulation
-            known = k > done and stages[k - 1][1] is None and r is not None
+            # the previous (whole-recording) pass's residuals and Jacobian, reweighted, when it ran
+            # here: no simulation
+            known = r is not None
             old = problem.sigma
             res = ((r if known else np.asarray(problem.residual(theta))).reshape(-1, 3) * old)[problem.keep]
             problem.sigma = np.maximum([np.sqrt(np.mean(res[:, :2] ** 2))] * 2 + [np.sqrt(np.mean(res[:, 2] ** 2))], 1e-15)

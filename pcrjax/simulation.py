@@ -154,8 +154,9 @@ def _scan_steps(scene, state, i0, count: int, active=None):
         return jax.lax.scan(advance, state, steps)
     # The step is traced once, to a jaxpr whose outputs' shapes the held steps copy (eval_shape of
     # `advance` would trace the whole step a second time: 8 s of a Triskele rollout's 23 s).
-    advance_jaxpr, consts = jax.closure_convert(advance, state, jnp.zeros((), steps.dtype))
-    out_shape = jax.eval_shape(advance_jaxpr, state, jnp.zeros((), steps.dtype), *consts)[1]
+    i = jnp.zeros((), steps.dtype)
+    advance_jaxpr, consts = jax.closure_convert(advance, state, i)
+    out_shape = jax.eval_shape(advance_jaxpr, state, i, *consts)[1]
 
     def hold(st, i):  # past the active steps: state kept, zero outputs, no solve
         return st, jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), out_shape)
