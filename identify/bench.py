@@ -26,6 +26,8 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
+import pcrjax
+
 from .fit import Problem, adam, levenberg_marquardt, summarize
 from .recording import load_recording
 
@@ -133,6 +135,7 @@ def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
 
 
 def main(argv=None):
+    pcrjax.config.configure()
     p = argparse.ArgumentParser(prog="python -m identify.bench", description=__doc__.splitlines()[0])
     p.add_argument("what", choices=("accuracy", "correlation", "optimizers"))
     p.add_argument("recording", nargs="?", default="experiments_data/triskele_push_release.csv")

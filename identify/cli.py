@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pcrjax.scene import SceneError
+import pcrjax
+from pcrjax import SceneError
 
 
 def _parser():
@@ -125,6 +126,7 @@ def main(argv=None) -> int:
     from .recording import RecordingError
 
     args = _parser().parse_args(argv)
+    pcrjax.config.configure()
     try:
         run(args)
     except (RecordingError, SceneError, ValueError) as e:

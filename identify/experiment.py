@@ -22,14 +22,15 @@ import equinox as eqx
 import jax.numpy as jnp
 
 import pcrjax
-from pcrjax.rod import TauDamping
-from pcrjax.scene import SceneError, read_toml, scene_from_dict, scene_path
+from pcrjax import SceneError, scene_from_dict
+from pcrjax.io.scene_file import read_toml, scene_path
+from pcrjax.physics.rod import TauDamping
 
 from .recording import Recording, RecordingError
 
 
 def _scene_file(name_or_path: str, base_dir: Path) -> Path:
-    """A path relative to the sidecar's folder, else whatever `pcrjax.scene.scene_path` finds."""
+    """A path relative to the sidecar's folder, else whatever `pcrjax.io.scene_file.scene_path` finds."""
     p = Path(name_or_path)
     if not p.is_absolute() and (base_dir / p).is_file():
         return base_dir / p
@@ -62,35 +63,32 @@ def is_rod(scene) -> bool:
 
 def nominal(scene) -> dict:
     """The scene's own values of the physical parameters (damping must be switched on)."""
-    if not scene.effects.damping or not isinstance(_rod(scene).damping, TauDamping):
+    rod = scene.legs.rod
+    if not scene.effects.damping or not isinstance(rod.damping, TauDamping):
         raise RecordingError("identification of tau needs [effects] damping = true with a [rod] tau")
-    rod = _rod(scene)
-    out = dict(tau=jnp.asarray(rod.damping.tau, jnp.float64), lengths=jnp.asarray(rod.length, jnp.float64))
+    # A rod scene's one leg: its parameters are scalars.
+    one = (lambda a: a[0]) if is_rod(scene) else (lambda a: a)  # noqa: E731
+    out = dict(tau=jnp.asarray(one(rod.damping.tau), jnp.float64), lengths=jnp.asarray(one(rod.length), jnp.float64))
     if is_rod(scene):
-        out["push_force"] = scene.tip.force[jnp.array([0, 2])]
+        out["push_force"] = scene.load.force[jnp.array([0, 2])]
     else:
         out["push_force"] = scene.load.force[:2]
         out["push_moment"] = scene.load.moment[2]
     return out
 
 
-def _rod(scene):
-    return scene.rod if is_rod(scene) else scene.legs.rod
-
-
 def apply(scene, params: dict):
     """``scene`` with the physical entries of ``params`` written in (others ignored)."""
-    rod_path = (lambda s: s.rod) if is_rod(scene) else (lambda s: s.legs.rod)
-    rod = rod_path(scene)
+    rod = scene.legs.rod
     if "tau" in params:
         tau = jnp.broadcast_to(params["tau"], jnp.shape(rod.damping.tau))
-        scene = eqx.tree_at(lambda s: rod_path(s).damping.tau, scene, tau)
+        scene = eqx.tree_at(lambda s: s.legs.rod.damping.tau, scene, tau)
     if "lengths" in params:
-        scene = eqx.tree_at(lambda s: rod_path(s).length, scene, jnp.broadcast_to(params["lengths"], jnp.shape(rod.length)))
+        scene = eqx.tree_at(lambda s: s.legs.rod.length, scene, jnp.broadcast_to(params["lengths"], jnp.shape(rod.length)))
     if "push_force" in params:
         f = params["push_force"]
         if is_rod(scene):
-            scene = eqx.tree_at(lambda s: s.tip.force, scene, jnp.stack([f[0], scene.tip.force[1], f[1]]))
+            scene = eqx.tree_at(lambda s: s.load.force, scene, jnp.stack([f[0], scene.load.force[1], f[1]]))
         else:
             scene = eqx.tree_at(lambda s: s.load.force, scene, jnp.stack([f[0], f[1], scene.load.force[2]]))
     if "push_moment" in params and not is_rod(scene):

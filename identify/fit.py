@@ -21,7 +21,7 @@ Gauss-Newton Hessian at the optimum (rescaled by the final reduced chi-square), 
 through the log transforms to standard errors of the values themselves.
 
 **Jacobians** come from `jax.jvp` through the whole rollout for the physical unknowns (each
-Newton solve differentiated implicitly, `pcrjax.newton.solve`) and from the camera model alone
+Newton solve differentiated implicitly, `pcrjax.numerics.newton.solve`) and from the camera model alone
 for the camera's unknowns.
 """
 
@@ -32,9 +32,9 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable
 
 import equinox as eqx
 import jax
@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import pcrjax
-from pcrjax.signals import Actuation
+from pcrjax.robots.signals import Actuation
 
 from . import camera, experiment, modes
 from .recording import Recording, RecordingError

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pcrjax.scene import read_toml
-from pcrjax.signals import TableError, read_table
+from pcrjax.io.scene_file import read_toml
+from pcrjax.io.tables import TableError, read_table
 
 COLUMNS = ("t_s", "x_m", "y_m", "theta_rad")
 EXPERIMENTS = ("push_release", "actuator_step", "release")
@@ -69,7 +69,7 @@ class Recording:
         expected = round((self.t[-1] - self.t[0]) * self.frame_rate) + 1
         return max(0.0, 1.0 - self.frames / expected)
 
-    def window(self, t_end: float) -> "Recording":
+    def window(self, t_end: float) -> Recording:
         """The frames up to ``t_end`` (s): a shorter recording."""
         keep = self.t <= t_end
         return dataclasses.replace(self, t=self.t[keep], pose=self.pose[keep])

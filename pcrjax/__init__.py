@@ -1,19 +1,21 @@
 """pcrjax: differentiable Cosserat-rod dynamics for parallel continuum robots, in JAX.
 
-Importing pcrjax enables float64 (before any array exists) and, unless ``PCRJAX_NO_CACHE`` is
-set, JAX's persistent compilation cache (``PCRJAX_CACHE_DIR``, default ``~/.cache/pcrjax``).
+pcrjax needs float64: enable it before creating any array,
+``jax.config.update("jax_enable_x64", True)``; `enable_compilation_cache` turns on JAX's
+persistent compilation cache. Importing pcrjax changes no JAX setting.
+
+Layout: ``physics/`` (rotations, rod, rigid platform), ``numerics/`` (BDF-alpha, spatial
+integration, shooting, Newton), ``robots/`` (legs, ends, actuation, the one assembly, statics and
+dynamics), ``io/`` (scene files, tables, outputs), `simulation` (the public solves), `cli`,
+``bench/``.
 """
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-from ._cache import enable_compilation_cache  # noqa: E402
-
-enable_compilation_cache()
-
-from .scene import Scene, SceneError, load_scene, shipped_scenes, with_solver  # noqa: E402
-from .simulation import ConvergenceError, StaticResult, Trajectory, rollout, simulate, solve_static  # noqa: E402
+from .config import enable_compilation_cache
+from .errors import ConvergenceError, SceneError
+from .io.scene_file import load_scene, scene_from_dict, shipped_scenes, with_solver
+from .numerics import results
+from .robots.scene import Scene
+from .simulation import StaticResult, Trajectory, rollout, simulate, solve_static
 
 __all__ = [
     "ConvergenceError",
@@ -21,8 +23,11 @@ __all__ = [
     "SceneError",
     "StaticResult",
     "Trajectory",
+    "enable_compilation_cache",
     "load_scene",
+    "results",
     "rollout",
+    "scene_from_dict",
     "shipped_scenes",
     "simulate",
     "solve_static",

@@ -1,4 +1,4 @@
-"""Command line: ``pcrjax simulate|static|bench|scenes`` (DESIGN §3).
+"""Command line: ``pcrjax simulate|static|inverse|bench|scenes``.
 
 User errors (bad file, unknown key, non-physical value, no convergence) print one line naming
 the cause and exit with status 2, without a traceback.
@@ -14,11 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import ConvergenceError, SceneError
+
 EXIT_USER_ERROR = 2
 
 
 def _scene(args):
-    from .scene import load_scene, with_solver
+    from .io.scene_file import load_scene, with_solver
 
     scene = load_scene(args.scene)
     changes = {k: getattr(args, k) for k in ("nodes", "integrator", "dt", "alpha", "duration", "tol") if getattr(args, k, None) is not None}
@@ -26,7 +28,7 @@ def _scene(args):
 
 
 def cmd_static(args) -> int:
-    from .simulation import ConvergenceError, solve_static
+    from .simulation import solve_static, static_failure
 
     scene = _scene(args)
     res = solve_static(scene, throw=False)
@@ -39,13 +41,14 @@ def cmd_static(args) -> int:
     }
     print(json.dumps(out, indent=2))
     if not bool(res.converged):
-        raise ConvergenceError(f"static solve did not converge: scaled residual {float(res.residual_norm):.3e} > tol {scene.solver.newton.tol:.1e}")
+        raise static_failure(scene, res)
     return 0
 
 
 def cmd_simulate(args) -> int:
-    from . import outputs
-    from .simulation import ConvergenceError, simulate
+    from .errors import ConvergenceError
+    from .io import outputs
+    from .simulation import simulate
 
     scene = _scene(args)
     out = Path(args.out)
@@ -60,7 +63,7 @@ def cmd_simulate(args) -> int:
         traj = simulate(scene, progress=not args.quiet and sys.stderr.isatty(), timings=timings)
     except ConvergenceError as e:
         failure = e
-        traj = getattr(e, "partial", None)
+        traj = e.partial
     summary = {
         "settings": outputs.scene_settings(scene),
         "compile_s": timings.get("compile_s"),
@@ -78,16 +81,12 @@ def cmd_simulate(args) -> int:
             newton_iterations=it.tolist(),
             residuals=np.asarray(traj.residual).tolist(),
         )
-        parallel = hasattr(scene, "legs")
-        outputs.write_trajectory(out / "trajectory.csv", traj, np.asarray(traj.actuators) if parallel else None)
-        if parallel:
-            summary["energy_j"] = {"initial": float(traj.energy[0]), "final": float(traj.energy[-1])}
-        if len(traj.t) > 1 and parallel:
-            outputs.plot_platform(out / "platform_path.png", traj, scene.name)
-            outputs.plot_legs(out / "legs.png", traj, scene.name)
-        elif len(traj.t) > 1:
-            outputs.plot_tip(out / "tip_path.png", traj, scene.name)
-            outputs.plot_shapes(out / "rod_shapes.png", traj, scene.name)
+        outputs.write_trajectory(out / "trajectory.csv", traj)
+        summary["energy_j"] = {"initial": float(traj.energy[0]), "final": float(traj.energy[-1])}
+        if len(traj.t) > 1:
+            label, path_png, shapes_png = scene.end.plots
+            outputs.plot_end(out / path_png, traj, scene.name, label)
+            outputs.plot_shapes(out / shapes_png, traj, scene.name)
     if failure is not None:
         summary["failure"] = {"message": str(failure), "time_s": failure.time, "residual": failure.residual}
     outputs.write_json(out / "summary.json", summary)
@@ -102,31 +101,25 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_scenes(args) -> int:
-    from .scene import shipped_scenes
+    from .io.scene_file import shipped_scenes
 
     print("\n".join(shipped_scenes()))
     return 0
 
 
 def cmd_bench(args) -> int:
-    if args.case == "cantilever":
-        from .bench import run_bench
+    from .bench.run import run_bench
 
-        args.nodes = args.nodes or "5,10,20,40,80,160"
-        args.reference_nodes = args.reference_nodes or 320
-        return run_bench(args)
-    from .bench_parallel import run_parallel_bench
-
-    run_parallel_bench(args)
+    run_bench(args)
     return 0
 
 
 def cmd_inverse(args) -> int:
-    from .scene import SceneError, load_scene
+    from .io.scene_file import load_scene
 
     scene = load_scene(args.scene)
-    if scene.robot == "rod":
-        raise SceneError(f"{args.scene}: inverse dynamics needs a parallel robot; robot '{scene.robot}' has no actuators")
+    if not scene.legs.actuated:
+        raise SceneError(f"{args.scene}: inverse dynamics needs actuated legs; robot '{scene.robot}' has none")
     raise SceneError(f"{args.scene}: inverse dynamics is not available in this version (forward dynamics and statics are: `pcrjax simulate`, `pcrjax static`)")
 
 
@@ -159,9 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_inverse)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
     p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele"], help="benchmark case")
-    p.add_argument("--nodes", help="comma-separated N values (RK4 for the parallel robots); default per case")
-    p.add_argument("--euler-nodes", help="parallel robots: comma-separated N values for explicit Euler")
-    p.add_argument("--integrators", default="rk4,euler", help="cantilever: integrators to run")
+    p.add_argument("--nodes", help="comma-separated N values for RK4; default per case")
+    p.add_argument("--euler-nodes", help="comma-separated N values for explicit Euler (empty string: none); default per case")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
     p.add_argument("--reference-nodes", type=int, help="N of the converged RK4 reference (default 320 cantilever, 80 Stewart-Gough, 100 Triskele)")
     p.add_argument("--noise", action="store_true", help="stewart_gough: also print the thesis noise table (alpha x N x dt)")
@@ -176,8 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from .scene import SceneError
-    from .simulation import ConvergenceError
+    from .config import configure
+
+    configure()
 
     try:
         return args.func(args)

@@ -9,32 +9,25 @@ step whose Newton solve did not converge (never returns such a result silently).
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import cantilever, parallel
-from .robot import ParallelScene
-from .rotations import rotation_vector
-from .scene import Scene, SceneError
-
-
-class ConvergenceError(RuntimeError):
-    """A Newton solve that did not reach the tolerance; ``time`` (s) and ``residual`` say where."""
-
-    def __init__(self, message, time=None, residual=None):
-        super().__init__(message)
-        self.time = time
-        self.residual = residual
+from .errors import ConvergenceError, SceneError
+from .numerics import results
+from .physics.rotations import rotation_vector
+from .robots import dynamics, statics
+from .robots.scene import Scene
 
 
 class StaticResult(eqx.Module):
     """Static equilibrium: tip or platform ``position`` (3,) m, ``rotation_vector`` (3,) rad,
-    ``base_wrenches`` (rods, 2, 3) [n(0), m(0)] in N and N m, node ``positions`` ((N+1, 3) for a
-    rod, (legs, N+1, 3) for a parallel robot), and the solve's stats."""
+    ``base_wrenches`` (legs, 2, 3) [n(0), m(0)] in N and N m, node ``positions`` (legs, N+1, 3),
+    and the solve's stats: final scaled ``residual_norm``, ``newton_iterations`` and ``result``
+    (a `pcrjax.numerics.results` code; `results.message` says it in words)."""
 
     position: jnp.ndarray
     rotation_vector: jnp.ndarray
@@ -43,19 +36,20 @@ class StaticResult(eqx.Module):
     positions: jnp.ndarray
     residual_norm: jnp.ndarray
     newton_iterations: jnp.ndarray
+    result: jnp.ndarray
     tol: float = eqx.field(static=True)
 
     @property
     def converged(self):
-        return self.residual_norm <= self.tol
+        return self.result == results.SUCCESSFUL
 
 
 class Trajectory(eqx.Module):
     """Time series: ``t`` (T,), tip or platform ``position`` (T, 3), ``rotation_vector`` (T, 3),
-    node ``positions`` ((T, N+1, 3), or (T, legs, N+1, 3)), ``actuators`` (T, legs) (zero columns
-    for a rod), total ``energy`` (T,) J of rods and platform (parallel robots; NaN for a rod); per
-    step (T-1,): Newton ``iterations``, final scaled ``residual``, ``jacobians`` evaluated. Row 0
-    is the initial static equilibrium."""
+    node ``positions`` (T, legs, N+1, 3), ``actuators`` (T, actuators) (no columns for a fixed
+    rod), total ``energy`` (T,) J of rods, platform, weights and the end's load; per step (T-1,):
+    Newton ``iterations``, final scaled ``residual``, ``jacobians`` evaluated and ``result`` (a
+    `pcrjax.numerics.results` code). Row 0 is the initial static equilibrium."""
 
     t: jnp.ndarray
     position: jnp.ndarray
@@ -66,56 +60,36 @@ class Trajectory(eqx.Module):
     iterations: jnp.ndarray
     residual: jnp.ndarray
     jacobians: jnp.ndarray
+    result: jnp.ndarray
     tol: float = eqx.field(static=True)
 
     @property
     def converged(self):
-        return self.residual <= self.tol
+        return self.result == results.SUCCESSFUL
 
 
 def _is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
-def _is_parallel(scene) -> bool:
-    return isinstance(scene, ParallelScene)
-
-
 def static_result(scene, sol) -> StaticResult:
-    if _is_parallel(scene):
-        nodes = sol.nodes
-        R = sol.rotation
-        return StaticResult(
-            position=sol.position,
-            rotation_vector=rotation_vector(R),
-            rotation=R,
-            base_wrenches=jnp.stack([nodes[:, 0, 12:15], nodes[:, 0, 15:18]], axis=1),
-            positions=nodes[:, :: scene.solver.refine, 0:3],
-            residual_norm=sol.stats.residual,
-            newton_iterations=sol.stats.iterations,
-            tol=scene.solver.newton.tol,
-        )
     nodes = sol.nodes
-    R = nodes[-1, 3:12].reshape(3, 3)
     return StaticResult(
-        position=nodes[-1, 0:3],
-        rotation_vector=rotation_vector(R),
-        rotation=R,
-        base_wrenches=jnp.stack([nodes[0, 12:15], nodes[0, 15:18]])[None],
-        positions=nodes[:: scene.solver.refine, 0:3],
+        position=sol.position,
+        rotation_vector=rotation_vector(sol.rotation),
+        rotation=sol.rotation,
+        base_wrenches=jnp.stack([nodes[:, 0, 12:15], nodes[:, 0, 15:18]], axis=1),
+        positions=nodes[:, :: scene.solver.refine, 0:3],
         residual_norm=sol.stats.residual,
         newton_iterations=sol.stats.iterations,
+        result=sol.stats.result,
         tol=scene.solver.newton.tol,
     )
 
 
-def _model(scene):
-    return parallel if _is_parallel(scene) else cantilever
-
-
 @eqx.filter_jit
 def _static(scene):
-    return static_result(scene, _model(scene).solve_static(scene))
+    return static_result(scene, statics.solve_static(scene))
 
 
 def solve_static(scene, *, throw: bool = True) -> StaticResult:
@@ -123,37 +97,42 @@ def solve_static(scene, *, throw: bool = True) -> StaticResult:
     `ConvergenceError` if the solve fails (when called outside a trace and ``throw``)."""
     res = _static(scene)
     if throw and not _is_traced(res.residual_norm) and not bool(res.converged):
-        raise ConvergenceError(
-            f"static solve did not converge: scaled residual {float(res.residual_norm):.3e} > tol {scene.solver.newton.tol:.1e}",
-            0.0,
-            float(res.residual_norm),
-        )
+        raise static_failure(scene, res)
     return res
 
 
+def static_failure(scene, res) -> ConvergenceError:
+    code = int(res.result)
+    return ConvergenceError(
+        f"static solve did not converge: {results.message(code)} (scaled residual {float(res.residual_norm):.3e}, tol {scene.solver.newton.tol:.1e})",
+        0.0,
+        float(res.residual_norm),
+        code,
+    )
+
+
+def check_structure(scene):
+    """Raise `SceneError` if a concrete scene's numbers outgrew its compiled structure."""
+    if not any(_is_traced(leaf) for leaf in jax.tree.leaves(scene)) and int(scene.structure_result()) != results.SUCCESSFUL:
+        raise SceneError(f"{scene.name}: {results.message(results.STALE_STRUCTURE)}")
+
+
 def _initial(scene):
-    m = _model(scene)
-    static = m.solve_static(scene)  # loads and actuators at t = 0
-    return static, m.initial_step_state(scene, static)
+    static = statics.solve_static(scene)  # loads and actuators at t = 0
+    return static, dynamics.initial_step_state(scene, static)
 
 
 def _scan_steps(scene, state, i0, count: int, active=None):
-    par = _is_parallel(scene)
-
     def advance(st, i):
         t = (i0 + i + 1) * scene.solver.dt
-        if par:
-            st, out = parallel.step(scene, st, t)
-            return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy)
-        st, out = cantilever.step(scene, st, t)
-        nan = jnp.full((), jnp.nan)
-        return st, (out.tip_position, rotation_vector(out.tip_rotation), out.positions, out.stats, jnp.zeros(0), nan)
+        st, out = dynamics.step(scene, st, t)
+        return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy)
 
     steps = jnp.arange(count)
     if active is None:
         return jax.lax.scan(advance, state, steps)
     # The step is traced once, to a jaxpr whose outputs' shapes the held steps copy (eval_shape of
-    # `advance` would trace the whole step a second time: 8 s of a Triskele rollout's 23 s).
+    # `advance` would trace the whole step a second time).
     i = jnp.zeros((), steps.dtype)
     advance_jaxpr, consts = jax.closure_convert(advance, state, i)
     out_shape = jax.eval_shape(advance_jaxpr, state, i, *consts)[1]
@@ -166,28 +145,19 @@ def _scan_steps(scene, state, i0, count: int, active=None):
 
 def _assemble(scene, static, state0, outs, steps):
     pos, rv, shapes, stats, act, energy = outs
-    if _is_parallel(scene):
-        p0, R0 = static.position, static.rotation
-        shape0 = static.nodes[:, :: scene.solver.refine, 0:3]
-        act0 = scene.actuation(jnp.zeros(()))
-        e0 = parallel.rest_energy(scene, state0)
-    else:
-        s0 = static.nodes
-        p0, R0 = s0[-1, 0:3], s0[-1, 3:12].reshape(3, 3)
-        shape0 = s0[:: scene.solver.refine, 0:3]
-        act0 = jnp.zeros(0)
-        e0 = jnp.full((), jnp.nan)
     t = jnp.arange(steps + 1) * scene.solver.dt
+    e0 = dynamics.rest_energy(scene, state0, static)
     return Trajectory(
         t=t,
-        position=jnp.concatenate([p0[None], pos[:steps]]),
-        rotation_vector=jnp.concatenate([rotation_vector(R0)[None], rv[:steps]]),
-        positions=jnp.concatenate([shape0[None], shapes[:steps]]),
-        actuators=jnp.concatenate([act0[None], act[:steps]]),
+        position=jnp.concatenate([static.position[None], pos[:steps]]),
+        rotation_vector=jnp.concatenate([rotation_vector(static.rotation)[None], rv[:steps]]),
+        positions=jnp.concatenate([static.nodes[None, :, :: scene.solver.refine, 0:3], shapes[:steps]]),
+        actuators=jnp.concatenate([scene.actuator_values(jnp.zeros(()))[None], act[:steps]]),
         energy=jnp.concatenate([e0[None], energy[:steps]]),
         iterations=stats.iterations[:steps],
         residual=stats.residual[:steps],
         jacobians=stats.jacobians[:steps],
+        result=results.worst(scene.structure_result(), stats.result[:steps]),
         tol=scene.solver.newton.tol,
     )
 
@@ -204,6 +174,7 @@ def rollout(scene, active_steps=None) -> Trajectory:
     """
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use solve_static")
+    check_structure(scene)
     static, state = _initial(scene)
     _, outs = _scan_steps(scene, state, 0, scene.solver.steps, active_steps)
     return _assemble(scene, static, state, outs, scene.solver.steps)
@@ -248,15 +219,17 @@ def _finish(scene, static, state0, outs, steps: int):
     return _assemble(scene, static, state0, outs, steps)
 
 
-def _raise_first_failure(scene, residual, tol, offset=0):
-    bad = np.flatnonzero(~(residual <= tol))
-    if bad.size:
-        i = int(bad[0])
-        t = (offset + i + 1) * float(scene.solver.dt)
+def _raise_first_failure(scene, traj):
+    i = results.first_failure(traj.result)
+    if i is not None:
+        t = (i + 1) * float(scene.solver.dt)
+        code = int(traj.result[i])
+        res = float(traj.residual[i])
         raise ConvergenceError(
-            f"Newton did not converge at t = {t:.6g} s (step {offset + i + 1}): scaled residual {float(residual[i]):.3e} > tol {tol:.1e}",
+            f"Newton did not converge at t = {t:.6g} s (step {i + 1}): {results.message(code)} (scaled residual {res:.3e}, tol {scene.solver.newton.tol:.1e})",
             t,
-            float(residual[i]),
+            res,
+            code,
         )
 
 
@@ -283,6 +256,7 @@ def simulate(
         return rollout(scene)
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use `pcrjax static`")
+    check_structure(scene)
     steps = scene.solver.steps
     chunk = max(1, min(chunk, steps))
     n_chunks = -(-steps // chunk)
@@ -290,9 +264,9 @@ def simulate(
     static, state = _start(scene)
     state0 = state
     jax.block_until_ready(state)
-    static_res = np.asarray(static.stats.residual)
-    if not static_res <= scene.solver.newton.tol:
-        raise ConvergenceError(f"initial static equilibrium did not converge: scaled residual {float(static_res):.3e}", 0.0, float(static_res))
+    if int(static.stats.result) != results.SUCCESSFUL:
+        code, res = int(static.stats.result), float(static.stats.residual)
+        raise ConvergenceError(f"initial static equilibrium did not converge: {results.message(code)} (scaled residual {res:.3e})", 0.0, res, code)
     # Compile the chunk once (lower+compile), so run time excludes compilation.
     compiled = _compiled_advance(scene, state, chunk)
     compile_s = time.perf_counter() - t_c0
@@ -309,15 +283,14 @@ def simulate(
     failure = None
     for c in range(n_chunks):
         state, outs = compiled(scene, state, jnp.asarray(c * chunk), chunk)
-        res = np.asarray(outs[3].residual)
+        codes = np.asarray(outs[3].result)
         outs_all.append(outs)
         done = min((c + 1) * chunk, steps)
         if bar is not None:
             bar.update(done - c * chunk)
         elif callable(progress):
             progress(done, steps)
-        valid = res[: done - c * chunk]
-        if throw and not np.all(valid <= scene.solver.newton.tol):
+        if throw and np.any(codes[: done - c * chunk] != results.SUCCESSFUL):
             failure = c
             break
     run_s = time.perf_counter() - t_r0
@@ -330,7 +303,7 @@ def simulate(
         timings.update(compile_s=compile_s, run_s=run_s, steps=n_done)
     if failure is not None:
         try:
-            _raise_first_failure(scene, np.asarray(traj.residual), scene.solver.newton.tol)
+            _raise_first_failure(scene, traj)
         except ConvergenceError as e:
             e.partial = traj
             raise

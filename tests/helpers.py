@@ -1,7 +1,7 @@
 """Scene builders for tests (independent of the shipped TOML files)."""
 
 import pcrjax
-from pcrjax.scene import scene_from_dict
+from pcrjax import scene_from_dict
 
 
 def rod_scene(

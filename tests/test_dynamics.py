@@ -8,7 +8,7 @@ from helpers import rod_scene
 from oracles import first_frequency_hz, fit_sinusoids, window_amplitudes
 
 import pcrjax
-from pcrjax.bdf_alpha import amplification
+from pcrjax.numerics.bdf_alpha import amplification
 
 F1 = first_frequency_hz(0.4, 207e9, 1e-3, 8000.0)  # 8.895 Hz
 W1 = 2 * math.pi * F1

@@ -6,12 +6,13 @@ import pytest
 from helpers import rod_scene
 
 import pcrjax
-from pcrjax import cantilever, simulation
+from pcrjax import simulation
+from pcrjax.robots import dynamics
 
 
 def _step_hlo(scene):
     static, state = simulation._start(scene)
-    fn = jax.jit(lambda sc, st: cantilever.step(sc, st, jnp.asarray(0.01)))
+    fn = jax.jit(lambda sc, st: dynamics.step(sc, st, jnp.asarray(0.01)))
     return fn.lower(scene, state).as_text(debug_info=True)
 
 

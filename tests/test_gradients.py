@@ -11,7 +11,7 @@ import pytest
 from helpers import rod_scene
 
 import pcrjax
-from pcrjax.rod import DiagonalDamping
+from pcrjax.physics.rod import DiagonalDamping
 
 REL = 1e-6
 
@@ -36,24 +36,25 @@ def _check(grad, fd, label):
 
 def _setter(paths):
     def apply(scene, params):
-        return eqx.tree_at(lambda s: [paths[k](s) for k in params], scene, [params[k] for k in params])
+        # The rod scene's one leg: scalar parameters fill the leading leg axis.
+        return eqx.tree_at(lambda s: [paths[k](s) for k in params], scene, [params[k][None] for k in params])
 
     return apply
 
 
 PATHS = {
-    "length": lambda s: s.rod.length,
-    "E": lambda s: s.rod.youngs_modulus,
-    "tau": lambda s: s.rod.damping.tau,
-    "bbt": lambda s: s.rod.damping.bbt,
-    "bse": lambda s: s.rod.damping.bse,
+    "length": lambda s: s.legs.rod.length,
+    "E": lambda s: s.legs.rod.youngs_modulus,
+    "tau": lambda s: s.legs.rod.damping.tau,
+    "bbt": lambda s: s.legs.rod.damping.bbt,
+    "bse": lambda s: s.legs.rod.damping.bse,
 }
 apply = _setter(PATHS)
 
 
 def test_static_tip_gradient_length_and_E():
     scene = rod_scene(force=(0, 0, -1.0), nodes=16, tol=1e-13, effects={"inertia": False})
-    params = {"length": scene.rod.length, "E": scene.rod.youngs_modulus}
+    params = {"length": scene.legs.rod.length[0], "E": scene.legs.rod.youngs_modulus[0]}
     f = jax.jit(lambda p: pcrjax.solve_static(apply(scene, p)).position[2])
     g = jax.grad(f)(params)
     for k in params:
@@ -74,7 +75,7 @@ def _dyn_scene(damping):
 def test_rollout_gradient_after_50_steps_length_E_tau():
     scene = _dyn_scene({"tau": 2e-4})
     assert scene.solver.steps == 50
-    params = {"length": scene.rod.length, "E": scene.rod.youngs_modulus, "tau": scene.rod.damping.tau}
+    params = {"length": scene.legs.rod.length[0], "E": scene.legs.rod.youngs_modulus[0], "tau": scene.legs.rod.damping.tau[0]}
     f = jax.jit(lambda p: pcrjax.rollout(apply(scene, p)).position[-1, 2])
     g = jax.jit(jax.grad(f))(params)
     for k in params:
@@ -84,8 +85,8 @@ def test_rollout_gradient_after_50_steps_length_E_tau():
 @pytest.mark.slow  # ~1 min cold; reverse-mode rollout gradients stay in the default run
 def test_rollout_jacfwd_after_50_steps_bbt():
     scene = _dyn_scene({"bse": [1e-2, 1e-2, 5e-2], "bbt": [2e-5, 2e-5, 1e-5]})
-    assert isinstance(scene.rod.damping, DiagonalDamping)
-    params = {"bbt": scene.rod.damping.bbt}
+    assert isinstance(scene.legs.rod.damping, DiagonalDamping)
+    params = {"bbt": scene.legs.rod.damping.bbt[0]}
     f = jax.jit(lambda p: pcrjax.rollout(apply(scene, p)).position[-1, 2])
     J = jax.jit(jax.jacfwd(f))(params)
     # The motion is in the x-z plane: bending about local y (bbt[1]) is the damped one.

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pcrjax import newton
+from pcrjax.numerics import newton
 
 SETTINGS = newton.NewtonSettings(tol=1e-13, max_iter=40)
 
@@ -24,9 +24,10 @@ def _root(params, fallback=None):
     jac_fn = lambda f, x: jax.jacfwd(f)(x)  # noqa: E731
     guess = jnp.full(1, 4.0 if fallback is None else jnp.nan)
     if fallback == "restart":
-        fallback = (None, jnp.ones(1), jnp.full((1, 1), 0.5), jnp.zeros(1, bool))
+        fallback = (None, None, jnp.ones(1), jnp.full((1, 1), 0.5), jnp.zeros(1, bool))
     elif fallback == "continuation":
-        fallback = newton.continuation(lambda x, s: x**3 + p * x - s * q, 4, 1)
+        homotopy = lambda x, s: x**3 + p * x - s * q  # noqa: E731
+        fallback = newton.continuation(homotopy, lambda x, s: jax.jacfwd(homotopy)(x, s), 4, 1)
     x, _, stats = newton.solve(fn, guess, newton.Jacobian.empty(1), jac_fn, SETTINGS, True, fallback)
     return x[0], stats
 

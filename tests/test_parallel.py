@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import pcrjax
-from pcrjax.scene import load_scene, with_solver
+from pcrjax import load_scene, with_solver
 
 NO_LOAD = (jnp.zeros(3), jnp.zeros(3))
 
@@ -85,7 +85,7 @@ def test_triskele_small_motion_matches_rigid_strut_kinematics():
 
     G = np.asarray(jax.jacfwd(pose)(jnp.zeros(3)))
     d = np.asarray(sc.legs.base_rotation[:, :, 2])
-    b = np.asarray(sc.legs.attachment) @ np.asarray(sc.reference_rotation).T
+    b = np.asarray(sc.end.attachment) @ np.asarray(sc.end.reference_rotation).T
     J = np.stack([[d[i, 0], d[i, 1], b[i, 0] * d[i, 1] - b[i, 1] * d[i, 0]] for i in range(3)])
     r, L = 62.5e-6, 0.032
     bound = np.linalg.cond(J) * 3 * r**2 / L**2
@@ -100,7 +100,7 @@ def test_triskele_small_motion_matches_rigid_strut_kinematics():
 
 def with_damping(sc, taus):
     sc = dataclasses.replace(sc, effects=dataclasses.replace(sc.effects, damping=True))
-    return eqx.tree_at(lambda s: s.legs.rod.damping, sc, pcrjax.rod.TauDamping(tau=jnp.asarray(taus)), is_leaf=lambda x: x is None)
+    return eqx.tree_at(lambda s: s.legs.rod.damping, sc, pcrjax.physics.rod.TauDamping(tau=jnp.asarray(taus)), is_leaf=lambda x: x is None)
 
 
 def test_triskele_settles_to_statics_after_actuator_step():

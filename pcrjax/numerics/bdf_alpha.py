@@ -1,4 +1,4 @@
-"""BDF-alpha time discretisation (DESIGN §1; thesis eq. 3.32-3.34 with the endpoints corrected).
+"""BDF-alpha time discretisation (thesis eq. 3.32-3.34, with the endpoints of alpha corrected).
 
 $f_t(t_i) = c_0 f_i + c_1 f_{i-1} + c_2 f_{i-2} + d_1 f_t(t_{i-1}) = c_0 f_i + f^h_i$ with
 

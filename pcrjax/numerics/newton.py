@@ -9,14 +9,16 @@ and are reported once at the end (as diffrax does). Gradients never unroll the i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
-from typing import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
+
+from . import results
 
 
 class NewtonSettings(eqx.Module):
@@ -66,13 +68,19 @@ class Jacobian(eqx.Module):
 
 
 class Stats(eqx.Module):
-    """Newton iterations (directions taken), final max-norm scaled residual, Jacobians evaluated
-    and residual evaluations."""
+    """Newton iterations (directions taken), final max-norm scaled residual, Jacobians evaluated,
+    residual evaluations, and the `results` code saying why the solve stopped."""
 
     iterations: jnp.ndarray
     residual: jnp.ndarray
     jacobians: jnp.ndarray
     evaluations: jnp.ndarray
+    result: jnp.ndarray
+
+    @classmethod
+    def zero(cls):
+        z = jnp.asarray(0)
+        return cls(z, jnp.asarray(0.0), z, z, jnp.asarray(results.SUCCESSFUL))
 
 
 def dense_jacobian(fn: Callable, x, colors: np.ndarray | None = None, mask: np.ndarray | None = None):
@@ -94,6 +102,26 @@ def _norm(r):
     return jnp.max(jnp.abs(r))
 
 
+class _State(eqx.Module):
+    """One pass of `newton`'s loop: iterate, its residual and norm, the Jacobian in use, and the
+    current direction with its line-search step."""
+
+    x: jnp.ndarray
+    r: jnp.ndarray
+    nrm: jnp.ndarray
+    jac: Jacobian
+    need: jnp.ndarray  # refresh the Jacobian before the next direction
+    fresh: jnp.ndarray  # the Jacobian was evaluated at the current iterate
+    dx: jnp.ndarray
+    lam: jnp.ndarray
+    it: jnp.ndarray
+    nj: jnp.ndarray
+    evals: jnp.ndarray
+    started: jnp.ndarray  # fn(x0) has been evaluated
+    gave_up: jnp.ndarray  # the last direction's line search failed
+    trial_finite: jnp.ndarray  # the last trial residual was finite
+
+
 def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True):
     """Solve ``fn(x) = 0`` from ``x0``; returns ``(x, Jacobian, Stats)``. Never raises.
 
@@ -105,32 +133,34 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
     is taken with the smallest step (damped Newton), so the iteration always moves.
     """
     n = x0.shape[0]
-    inf = jnp.asarray(jnp.inf, x0.dtype)
-    # (x, r, nrm, jac, need, fresh, dx, lam, it, nj, evals, started)
-    init = (x0, jnp.zeros(n, x0.dtype), inf, jac0, jnp.asarray(need_jacobian), jnp.asarray(False),
-            jnp.zeros(n, x0.dtype), jnp.asarray(0.0, x0.dtype), 0, 0, 0, jnp.asarray(False))
+    false, zero = jnp.asarray(False), jnp.asarray(0)
+    init = _State(
+        x=x0, r=jnp.zeros(n, x0.dtype), nrm=jnp.asarray(jnp.inf, x0.dtype), jac=jac0, need=jnp.asarray(need_jacobian), fresh=false,
+        dx=jnp.zeros(n, x0.dtype), lam=jnp.asarray(0.0, x0.dtype), it=zero, nj=zero, evals=zero, started=false, gave_up=false,
+        trial_finite=jnp.asarray(True),
+    )
     lam_min = 0.5**settings.max_backtracks
 
-    def cond(st):
-        x, r, nrm, jac, need, fresh, dx, lam, it, nj, ev, started = st
-        return (~started) | ((nrm > settings.tol) & (it < settings.max_iter) & jnp.isfinite(nrm))
+    def cond(st: _State):
+        return (~st.started) | ((st.nrm > settings.tol) & (st.it < settings.max_iter) & jnp.isfinite(st.nrm))
 
-    def body(st):
-        x, r, nrm, jac, need, fresh, dx, lam, it, nj, ev, started = st
+    def body(st: _State):
+        x, r, nrm, jac, need, fresh, dx, lam, started = st.x, st.r, st.nrm, st.jac, st.need, st.fresh, st.dx, st.lam, st.started
         new_dir = started & (lam == 1.0)
         refresh = new_dir & need
         jac, fresh, nj = jax.lax.cond(
             refresh,
-            lambda: (Jacobian.factor(jac_fn(fn, x)), jnp.asarray(True), nj + 1),
-            lambda: (jac, fresh, nj),
+            lambda: (Jacobian.factor(jac_fn(fn, x)), jnp.asarray(True), st.nj + 1),
+            lambda: (jac, fresh, st.nj),
         )
         dx = jnp.where(new_dir, -jac.solve(r), dx)
         r_t = fn(x + lam * dx)
         nrm_t = _norm(r_t)
-        ok = (nrm_t <= (1.0 - 1e-4 * lam) * nrm) & jnp.isfinite(nrm_t)
+        finite = jnp.isfinite(nrm_t)
+        ok = (nrm_t <= (1.0 - 1e-4 * lam) * nrm) & finite
         ok = ok | ~started  # the first pass only evaluates fn(x0)
         give_up = ~ok & (lam <= lam_min)
-        forced = give_up & fresh & jnp.isfinite(nrm_t)
+        forced = give_up & fresh & finite
         move = ok | forced
         # Broyden's ("good") rank-one update keeps reused Jacobians accurate: superlinear
         # convergence without re-evaluating the Jacobian. Refactoring is cheap next to a residual.
@@ -138,19 +168,34 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
         upd = move & started & (jnp.dot(step_x, step_x) > 0)
         J_b = jac.matrix + jnp.outer(r_t - r - jac.matrix @ step_x, step_x) / jnp.where(upd, jnp.dot(step_x, step_x), 1.0)
         jac = jax.lax.cond(upd & settings.broyden, lambda: Jacobian.factor(J_b), lambda: jac)
-        x_new = jnp.where(move, x + lam * dx, x)
-        r_new = jnp.where(move, r_t, r)
-        nrm_new = jnp.where(move, nrm_t, nrm)
         # Next pass: after a move or a failed search, a new direction (lam = 1); else backtrack.
-        lam_new = jnp.where(move | give_up, 1.0, 0.5 * lam)
-        need_new = jnp.where(move & started, (nrm_t > settings.refresh_ratio * nrm) | forced, need)
-        need_new = need_new | give_up
-        fresh_new = fresh & ~(move & started)
-        it_new = it + jnp.where((move | give_up) & started, 1, 0)
-        return (x_new, r_new, nrm_new, jac, need_new, fresh_new, dx, lam_new, it_new, nj, ev + 1, jnp.asarray(True))
+        need_new = jnp.where(move & started, (nrm_t > settings.refresh_ratio * nrm) | forced, need) | give_up
+        searched = (move | give_up) & started
+        return _State(
+            x=jnp.where(move, x + lam * dx, x),
+            r=jnp.where(move, r_t, r),
+            nrm=jnp.where(move, nrm_t, nrm),
+            jac=jac,
+            need=need_new,
+            fresh=fresh & ~(move & started),
+            dx=dx,
+            lam=jnp.where(move | give_up, 1.0, 0.5 * lam),
+            it=st.it + jnp.where(searched, 1, 0),
+            nj=nj,
+            evals=st.evals + 1,
+            started=jnp.asarray(True),
+            gave_up=jnp.where(searched, give_up, st.gave_up),
+            trial_finite=finite,
+        )
 
-    x, _, nrm, jac, _, _, _, _, it, nj, ev, _ = jax.lax.while_loop(cond, body, init)
-    return x, jac, Stats(iterations=jnp.asarray(it), residual=nrm, jacobians=jnp.asarray(nj), evaluations=jnp.asarray(ev))
+    st = jax.lax.while_loop(cond, body, init)
+    result = jnp.where(
+        st.nrm <= settings.tol,
+        results.SUCCESSFUL,
+        jnp.where(~jnp.isfinite(st.nrm) | (st.gave_up & ~st.trial_finite), results.NONFINITE,
+                  jnp.where(st.gave_up, results.LINE_SEARCH_FAILED, results.MAX_ITERATIONS)),
+    )
+    return st.x, st.jac, Stats(iterations=st.it, residual=st.nrm, jacobians=st.nj, evaluations=st.evals, result=result)
 
 
 def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None):
@@ -159,20 +204,20 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
     ``jac_fn(f, x)`` gives the exact Jacobian of ``f`` at ``x``; it serves the forward Newton and,
     at the root, the tangent solve of the implicit function theorem: ``dx = -J^{-1} (df/dp) dp``
     for every value ``p`` that ``fn`` closes over (`_implicit`). A ``jac_fn`` may exploit the
-    structure of ``fn`` (the parallel robot's leg-by-leg Jacobian); `jax.lax.custom_root`, used
-    before, passes the tangent solve only the linearised function, whose dense Jacobian (21
-    forward passes of the Triskele-bot's residual per step) dominated the cost of a rollout's
-    tangents, and traced that solve even where nothing was differentiated.
+    structure of ``fn`` (the robots' leg-by-leg Jacobian). `jax.lax.custom_root` would pass the
+    tangent solve only the linearised function, whose dense Jacobian costs one forward pass per
+    unknown, and trace that solve even where nothing is differentiated.
 
     ``fn`` and ``jac_fn(fn, .)`` are traced once each (`jax.closure_convert`); the Newton loop
     and the tangent rule evaluate those traces. The forward solve sees its inputs through
     ``stop_gradient``: no tangent flows through its iterations.
 
-    ``fallback``, if given, is ``(homotopy, s, starts, chain)``: stages tried in order only while
-    the solve has not converged (traced once, run only if needed). Stage k solves
-    ``homotopy(x, s[k]) = 0`` (with ``homotopy(x, 1) == fn(x)``; None: ``fn`` itself) from
-    ``starts[k]``, or, where ``chain[k]``, from stage k-1's result, with a fresh Jacobian. Load
-    continuation and a restart from the previous time step are both written this way.
+    ``fallback``, if given, is ``(homotopy, homotopy_jac, s, starts, chain)``: stages tried in order
+    only while the solve has not converged (traced once, run only if needed). Stage k solves
+    ``homotopy(x, s[k]) = 0`` (with ``homotopy(x, 1) == fn(x)``; None: ``fn`` itself, with
+    ``jac_fn``) from ``starts[k]``, or, where ``chain[k]``, from stage k-1's result, with a fresh
+    Jacobian ``homotopy_jac(x, s[k])``. Load continuation and a restart from the previous time
+    step are both written this way.
     """
     f_conv, f_consts = jax.closure_convert(fn, x0)
     j_conv, j_consts = jax.closure_convert(lambda x: jac_fn(fn, x), x0)
@@ -184,20 +229,22 @@ def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobia
 
     x, jac, stats = newton(f, x0, jac0, jac_f, settings, need_jacobian)
     if fallback is not None:
-        homotopy, svals, starts, chain = fallback
+        homotopy, homotopy_jac, svals, starts, chain = fallback
         if homotopy is None:
-            stage_fn, stage_jac = lambda _s: f, jac_f
+            stage_fn, stage_jac = lambda _s: f, lambda _s: jac_f
         else:
             h_conv, h_consts = jax.closure_convert(homotopy, x0, svals[0])
-            h_fc = fixed(h_consts)
-            stage_fn, stage_jac = (lambda s: lambda z: h_conv(z, s, *h_fc)), jac_fn
+            hj_conv, hj_consts = jax.closure_convert(homotopy_jac, x0, svals[0])
+            h_fc, hj_fc = fixed(h_consts), fixed(hj_consts)
+            stage_fn = lambda s: lambda z: h_conv(z, s, *h_fc)  # noqa: E731
+            stage_jac = lambda s: lambda _f, z: hj_conv(z, s, *hj_fc)  # noqa: E731
 
         def stage(carry, inp):
             x, jac, done, total = carry
             s, start, from_prev = inp
 
             def run():
-                x2, jac2, st = newton(stage_fn(s), jnp.where(from_prev, x, start), jac, stage_jac, settings, True)
+                x2, jac2, st = newton(stage_fn(s), jnp.where(from_prev, x, start), jac, stage_jac(s), settings, True)
                 return x2, jac2, (s == 1.0) & (st.residual <= settings.tol), accumulate(total, st)
 
             return jax.lax.cond(done, lambda: (x, jac, done, total), run), None
@@ -225,12 +272,18 @@ def _implicit_jvp(f_conv, j_conv, primals, tangents):
 
 
 def accumulate(total: Stats, st: Stats) -> Stats:
-    """Stats of two solves in sequence: counts add up, the residual is the later one's."""
-    return Stats(total.iterations + st.iterations, st.residual, total.jacobians + st.jacobians, total.evaluations + st.evaluations)
+    """Stats of two solves in sequence: counts add up, the residual and result are the later one's."""
+    return Stats(total.iterations + st.iterations, st.residual, total.jacobians + st.jacobians, total.evaluations + st.evaluations, st.result)
 
 
-def continuation(homotopy, n: int, size: int, dtype=jnp.float64):
+def continuation(homotopy, homotopy_jac, n: int, size: int, dtype=jnp.float64):
     """Fallback stages for load continuation: s = 1/n .. 1, starting from the root x = 0 at s = 0."""
     svals = jnp.linspace(1.0 / n, 1.0, n, dtype=dtype)
     chain = jnp.arange(n) > 0
-    return homotopy, svals, jnp.zeros((n, size), dtype), chain
+    return homotopy, homotopy_jac, svals, jnp.zeros((n, size), dtype), chain
+
+
+def restart(x):
+    """Fallback stage for a time step: Newton again from ``x`` (the previous step's solution)
+    with a fresh Jacobian."""
+    return None, None, jnp.ones(1, x.dtype), jax.lax.stop_gradient(x)[None], jnp.zeros(1, bool)

@@ -50,8 +50,8 @@ class TauDamping(eqx.Module):
 class DiagonalDamping(eqx.Module):
     """Kelvin-Voigt damping with explicit diagonals: ``bse`` (N s), ``bbt`` (N m^2 s)."""
 
-    bse: Float[Array, "3"]
-    bbt: Float[Array, "3"]
+    bse: Float[Array, 3]
+    bbt: Float[Array, 3]
 
     def diagonals(self, kse, kbt):
         return self.bse, self.bbt
@@ -71,8 +71,8 @@ class Rod(eqx.Module):
     shear_modulus: Float[Array, ""]
     density: Float[Array, ""]
     damping: TauDamping | DiagonalDamping | None = None
-    drag: Float[Array, "3"] | None = None
-    precurvature: Float[Array, "3"] | None = None
+    drag: Float[Array, 3] | None = None
+    precurvature: Float[Array, 3] | None = None
 
     @property
     def area(self):
@@ -215,3 +215,16 @@ def kinematic_state(y, h, k: RodCoefficients, effects: Effects):
     """The quantities BDF-alpha differentiates in time at a node: ``z = [v, u, q, w]``."""
     v, u = strains(y, h, k, effects)
     return jnp.concatenate([v, u, y[18:21], y[21:24]])
+
+
+def energy(k: RodCoefficients, effects: Effects, nodes, z, ds):
+    """Elastic, kinetic and (with gravity) potential energy of one rod (J), trapezoidal rule over
+    its ``nodes`` (N+1, 24) with kinematic states ``z`` (N+1, 12) = [v, u, q, w]."""
+    v, u, q, w = z[:, 0:3], z[:, 3:6], nodes[:, 18:21], nodes[:, 21:24]
+    e = 0.5 * jnp.sum(k.kbt * (u - (0.0 if k.ustar is None else k.ustar)) ** 2, axis=1)
+    if effects.shear_extension:
+        e = e + 0.5 * jnp.sum(k.kse * (v - jnp.asarray(_E3)) ** 2, axis=1)
+    e = e + 0.5 * k.rho_a * jnp.sum(q * q, axis=1) + 0.5 * jnp.sum(k.rho_j * w * w, axis=1)
+    if k.gravity is not None:
+        e = e - nodes[:, 0:3] @ k.gravity
+    return ds * (jnp.sum(e) - 0.5 * (e[0] + e[-1]))

@@ -29,7 +29,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .bdf_alpha import Coefficients
 from .rotations import cross, exp_map, matmul, matvec, rotation_vector, transpose_matmul
 
 
@@ -61,7 +60,7 @@ class PlatformMotion(eqx.Module):
     wh: jnp.ndarray  # body angular velocity history: dw_i = c0 w_i + wh
 
     @classmethod
-    def rest(cls, co: Coefficients, p, R):
+    def rest(cls, co, p, R):
         z = jnp.zeros(3, p.dtype)
         return cls(p1=p, v1=z, gp=z, gv=z, R1=R, R2=R, w1=z, wh=z)
 
@@ -95,7 +94,7 @@ def pose_unknowns(p, R, p_prev, R_prev, planar: bool, length):
     return jnp.concatenate([dp / length, theta])
 
 
-def rates(co: Coefficients, m: PlatformMotion, dp, theta) -> Rates:
+def rates(co, m: PlatformMotion, dp, theta) -> Rates:
     v = co.c0 * dp + m.gp
     a = co.c0 * (v - m.v1) + m.gv
     phi2 = rotation_vector(matmul(exp_map(-theta), transpose_matmul(m.R1, m.R2)))
@@ -104,7 +103,7 @@ def rates(co: Coefficients, m: PlatformMotion, dp, theta) -> Rates:
     return Rates(v=v, a=a, w=w, dw=dw)
 
 
-def advance(co: Coefficients, m: PlatformMotion, p, R, dp, r: Rates) -> PlatformMotion:
+def advance(co, m: PlatformMotion, p, R, dp, r: Rates) -> PlatformMotion:
     """Memory for the next step after a step that moved by ``dp`` to pose (p, R) with rates ``r``."""
     return PlatformMotion(
         p1=p,

@@ -15,15 +15,13 @@ rotations of segment starts are Cayley parameters relative to a reference rotati
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .rod import DYNAMIC_DIM, STATIC_DIM
-from .rotations import cayley, cayley_inverse, matmul, skew_vee, transpose_matmul
+from ..physics.rod import DYNAMIC_DIM, STATIC_DIM
+from ..physics.rotations import cayley, cayley_inverse, matmul, skew_vee, transpose_matmul
 from .spatial import integrate
 
 SEGMENT_CONDITIONING = 6.0  # target lambda * segment length (error growth e^6 = 400)
@@ -44,18 +42,6 @@ def make_scales(rod, c0=None) -> Scales:
     L = rod.length
     c0 = jnp.ones_like(L) if c0 is None else c0
     return Scales(length=L, force=rod.bending_stiffness / L**2, velocity=L * c0, angular=c0)
-
-
-def boundary_layer_rate(radius, E, G, rho, c0) -> float:
-    r"""$\lambda$ (1/m): fastest spatial growth/decay rate of a dynamic step's rod equations."""
-    A = math.pi * radius**2
-    EI = E * 0.25 * math.pi * radius**4
-    return max((rho * A * c0**2 / EI) ** 0.25, c0 * math.sqrt(rho / min(E, G)))
-
-
-def auto_segments(nodes, length, lam) -> int:
-    """Number of shooting segments for a dynamic step (Python numbers, decided before tracing)."""
-    return int(min(nodes, max(1, math.ceil(lam * length / SEGMENT_CONDITIONING))))
 
 
 class Layout(eqx.Module):

@@ -15,8 +15,8 @@ exactly, and interpolates only $g$ (cubically, `spatial.midpoints`). Hence:
   1.4e-5 m at N = 10 on the thesis cantilever);
 * in motion, the interpolation error is $O(ds^4)$ times a velocity, not times $c_0$;
 * no new memory is introduced: the stage values are functions of the previous step's nodes.
-  (Giving every stage point its own full recurrence, velocity part included, was tried and made
-  the trapezoidal rule unstable.)
+  (A full recurrence of its own at every stage point, velocity part included, makes the
+  trapezoidal rule unstable: a parasitic mode that alpha = -0.5 does not damp.)
 
 Euler evaluates at nodes only; there the split changes nothing.
 """
@@ -29,8 +29,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..physics.rod import coefficients, kinematic_state
 from . import bdf_alpha
-from .rod import coefficients, kinematic_state
 from .spatial import integrate, midpoints
 
 

@@ -7,8 +7,8 @@ broke the trapezoidal rule's energy conservation: the thesis cantilever's first 
 in 12 periods at $h = \omega\delta t = 0.5$ and 20 % at $h = 0.1$ (N = 20). pcrjax interpolates
 the history cubically (4th order, like RK4): the growth is gone and the first frequency is
 within 1e-4 at N = 40. The remaining error is $O(c_0\,ds^4)$, so very small time steps need
-more nodes (N growing like $\delta t^{-1/4}$). Giving each stage point its own history instead
-(tried) made the trapezoidal scheme unstable (a parasitic mode that alpha = -0.5 does not damp).
+more nodes (N growing like $\delta t^{-1/4}$); `rod_history.py` keeps the previous step's value
+exactly at every stage point, so that this error multiplies a velocity, not $c_0$.
 
 The scan supports multiple shooting: at the first node of each segment the carried state is replaced by that
 segment's unknown start state, and the state arriving there is returned so that the caller can
@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .rod import rhs
+from ..physics.rod import rhs
 
 INTEGRATORS = ("rk4", "euler")
 
@@ -102,18 +102,3 @@ def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, rest
         stages = outs[2] if integrator == "rk4" else jnp.zeros((n_steps, 0, y0.shape[0]), y0.dtype)
         return nodes, arrivals, stages
     return nodes, arrivals
-
-
-def refinement(lam_ds: float) -> int:
-    r"""Internal nodes per output node so that $\lambda\,ds \le 1$, where one explicit step
-    still damps the decaying solution about right (RK4: 0.375 for $e^{-1} = 0.368$).
-
-    When a dynamic step's boundary layer ($1/\lambda$, millimetres at $\delta t = 10^{-5}$ s) is
-    thinner than the node spacing, one explicit step amplifies the decaying solution instead of
-    damping it and the shooting problem has no well-posed solution. pcrjax then integrates on a
-    finer internal grid (histories kept at every internal node) and reports the user's nodes.
-    Inside RK4's stability interval but above 1 (e.g. 1.9: 0.30 for $e^{-1.9} = 0.15$) the
-    misrepresented decay made undamped trapezoidal runs (alpha = -0.5, dt = 1e-5 s) blow up
-    after 70 steps, so the limit is 1 for both integrators.
-    """
-    return max(1, int(np.ceil(lam_ds)))

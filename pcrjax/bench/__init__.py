@@ -1,0 +1,1 @@
+"""Benchmarks: `pcrjax bench` (cases, driver, kernel counts)."""

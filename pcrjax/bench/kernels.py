@@ -1,0 +1,70 @@
+"""Kernels per node step: what XLA:CPU runs for one RK4 (or Euler) step along a rod.
+
+XLA:CPU's runtime pays a fixed cost per kernel (per fusion, copy, custom call...), so the time of
+a scan over nodes is about (kernels in its body) x (cost per kernel) x (nodes). This module
+compiles one leg's dynamic integration for a scene and counts the instructions of the scan's
+loop body that launch work (parameters, tuples and their elements, constants and bitcasts do not).
+"""
+
+from __future__ import annotations
+
+import re
+
+import jax
+import jax.numpy as jnp
+
+_FREE = {"parameter", "get-tuple-element", "tuple", "constant", "bitcast"}
+_OP = re.compile(r"^\s*(?:ROOT\s+)?[%\w.\-]+\s*=\s*\S+(?:\[[^\]]*\])?(?:\{[^}]*\})?\s+([\w\-]+)\(")
+
+
+def computations(hlo: str) -> dict[str, list[str]]:
+    """Instruction opcodes of each computation of an HLO module text."""
+    comps: dict[str, list[str]] = {}
+    name = None
+    for line in hlo.splitlines():
+        head = re.match(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s.*\{\s*$", line)  # computations start unindented
+        if head:
+            name = head.group(1)
+            comps[name] = []
+            continue
+        if line.strip() == "}":
+            name = None
+            continue
+        m = _OP.match(line)
+        if name is not None and m:
+            comps[name].append(m.group(1))
+    return comps
+
+
+def loop_body_kernels(hlo: str) -> int:
+    """Kernels of the innermost while loop's body (the one that contains no loop itself)."""
+    comps = computations(hlo)
+    bodies = re.findall(r"while\(.*?body=%?([\w.\-]+)", hlo)
+    counts = [sum(op not in _FREE for op in comps.get(b, [])) for b in bodies if "while" not in comps.get(b, [])]
+    return min(counts) if counts else 0
+
+
+def node_step_kernels(scene) -> int:
+    """Kernels per node step of one leg of ``scene`` in a dynamic step (the spatial scan's body)."""
+    from ..numerics import bdf_alpha
+    from ..physics.rod import coefficients
+    from ..robots import assembly
+
+    s = scene.solver
+    lay = assembly.layout(scene, True)
+    leg = jax.tree.map(lambda a: a[0], scene.legs)
+    co = bdf_alpha.coefficients(s.dt, s.alpha)
+    k = coefficients(leg.rod, scene.effects, co.c0, scene.gravity)
+    sc = assembly.scales(scene, co.c0)
+    hist = jax.tree.map(lambda a: a[0], assembly.zero_histories(scene))
+    y0 = scene.legs.base_states(scene.actuator_values(jnp.zeros(())), None, True)[0]
+    R_ref = jnp.broadcast_to(jnp.eye(3), (lay.segments - 1, 3, 3))
+    ds = scene.legs.lengths(scene.actuator_values(jnp.zeros(())))[0] / s.grid_nodes
+
+    from ..numerics.shooting import shoot
+
+    def f(x):
+        return shoot(lay, x, y0, R_ref, hist, k, scene.effects, ds, s.integrator, sc, s.unroll)[0][-1]
+
+    hlo = jax.jit(f).lower(jnp.zeros(lay.size)).compile().as_text()
+    return loop_body_kernels(hlo)

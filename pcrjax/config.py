@@ -1,0 +1,49 @@
+"""JAX settings pcrjax needs (float64) or benefits from (the persistent compilation cache).
+
+Importing pcrjax changes no global JAX setting. The command-line tools call `configure`; a
+library user enables float64 before creating any array,
+``jax.config.update("jax_enable_x64", True)`` (pcrjax refuses to build a scene otherwise), and
+may call `enable_compilation_cache` so that a second process does not compile again.
+"""
+
+import os
+from pathlib import Path
+
+import jax
+
+from .errors import SceneError
+
+
+def require_x64():
+    """Raise `SceneError` unless float64 is enabled (float32 cannot hold the solve: residual floor ~1e-7)."""
+    if not jax.config.jax_enable_x64:
+        raise SceneError('pcrjax needs float64: call jax.config.update("jax_enable_x64", True) before creating any array')
+
+
+def cache_dir() -> Path | None:
+    if os.environ.get("PCRJAX_NO_CACHE"):
+        return None
+    d = os.environ.get("PCRJAX_CACHE_DIR") or os.path.join(os.environ.get("XDG_CACHE_HOME", str(Path.home() / ".cache")), "pcrjax", "jax")
+    return Path(d)
+
+
+def enable_compilation_cache() -> Path | None:
+    """JAX's persistent compilation cache in ``PCRJAX_CACHE_DIR`` (default ``~/.cache/pcrjax/jax``;
+    ``PCRJAX_NO_CACHE=1``: off). Returns the folder, or None."""
+    d = cache_dir()
+    if d is None:
+        return None
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(d))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return d
+
+
+def configure():
+    """What the command-line tools set before anything else: float64 and the compilation cache."""
+    jax.config.update("jax_enable_x64", True)
+    enable_compilation_cache()

@@ -1,0 +1,1 @@
+"""Files: scene TOML, CSV time series, run outputs."""

@@ -1,0 +1,158 @@
+"""Files a run writes: trajectory.csv, summary.json and PNG plots."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+TRAJECTORY_HEADER = ["t_s", "x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad"]
+
+
+def _atomic_write(path: Path, text: str):
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_trajectory(path: Path, traj):
+    """``t_s``, the end's position and rotation vector, then one column per actuator (``a1``...)."""
+    t = np.asarray(traj.t)
+    actuators = np.asarray(traj.actuators)
+    cols = [t[:, None], np.asarray(traj.position), np.asarray(traj.rotation_vector), actuators]
+    header = list(TRAJECTORY_HEADER) + [f"a{i + 1}" for i in range(actuators.shape[1])]
+    data = np.concatenate(cols, axis=1)
+    lines = [",".join(header)] + [",".join(f"{v:.17g}" for v in row) for row in data]
+    _atomic_write(path, "\n".join(lines) + "\n")
+
+
+def write_json(path: Path, obj):
+    _atomic_write(path, json.dumps(obj, indent=2) + "\n")
+
+
+def _rod_dict(rod) -> dict:
+    f = lambda a: np.asarray(a).tolist()  # noqa: E731  (scalars, or one value per leg)
+    return {
+        "length_m": f(rod.length),
+        "radius_m": f(rod.radius),
+        "youngs_modulus_pa": f(rod.youngs_modulus),
+        "shear_modulus_pa": f(rod.shear_modulus),
+        "density_kg_m3": f(rod.density),
+    }
+
+
+def scene_settings(scene) -> dict:
+    s = scene.solver
+    e = scene.effects
+    out = {
+        "name": scene.name,
+        "robot": scene.robot,
+        "nodes": s.nodes,
+        "integrator": s.integrator,
+        "dt_s": float(s.dt),
+        "alpha": float(s.alpha),
+        "steps": s.steps,
+        "duration_s": float(s.steps * s.dt),
+        "tol": s.newton.tol,
+        "shooting_segments": s.segments,
+        "internal_nodes": s.grid_nodes,
+        "effects": {k: getattr(e, k) for k in ("inertia", "gravity", "damping", "drag", "shear_extension", "planar")},
+        "rods": _rod_dict(scene.legs.rod),
+        "legs": scene.legs.count,
+        "base_kind": scene.legs.kind,
+        "end": scene.end.describe(),
+        "static_continuation_stages": s.continuation,
+    }
+    return out
+
+
+def _scale(values) -> tuple[float, str]:
+    """Factor and unit (m, mm or um) that show ``values`` (m) with a few significant digits."""
+    span = float(np.max(np.abs(values))) if np.size(values) else 0.0
+    for factor, unit in ((1.0, "m"), (1e3, "mm"), (1e6, "µm")):
+        if span * factor >= 0.5:
+            return factor, unit
+    return 1e9, "nm"
+
+
+def _time_series(ax, t, values, labels, ylabel):
+    for v, lab in zip(values.T, labels):
+        ax.plot(t, v, label=lab)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(ylabel)
+    ax.legend()
+    ax.grid(alpha=0.3)
+
+
+def _path(fig, ax, t, x, y, xlabel, ylabel, title):
+    """Path in a plane, coloured by time."""
+    sc = ax.scatter(x, y, c=t, s=4, cmap="viridis")
+    ax.plot(x, y, lw=0.5, color="0.6")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title)
+    fig.colorbar(sc, ax=ax, label="t [s]")
+
+
+def _save(fig, path: Path, title: str):
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_end(path: Path, traj, title: str, label: str):
+    """Position and rotation of the end (``label``: tip or platform) over time, and its path in the
+    plane of largest motion, in units that fit the motion."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(traj.t)
+    p = np.asarray(traj.position)
+    rv = np.asarray(traj.rotation_vector)
+    d = p - p[0]
+    f, unit = _scale(d)
+    fr, runit = _scale(rv - rv[0])
+    runit = {"m": "rad", "mm": "mrad", "µm": "µrad", "nm": "nrad"}[runit]
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    _time_series(ax[0], t, d * f, [f"{c} − {c}(0)" for c in "xyz"], f"{label} displacement [{unit}]")
+    _time_series(ax[1], t, (rv - rv[0]) * fr, [f"r{c} − r{c}(0)" for c in "xyz"], f"rotation vector change [{runit}]")
+    i, j = sorted(np.argsort(d.std(axis=0))[::-1][:2])
+    _path(fig, ax[2], t, d[:, i] * f, d[:, j] * f, f"{'xyz'[i]} − {'xyz'[i]}(0) [{unit}]", f"{'xyz'[j]} − {'xyz'[j]}(0) [{unit}]", f"{label} path")
+    _save(fig, path, title)
+
+
+def plot_shapes(path: Path, traj, title: str, count: int = 12):
+    """Every leg's shape at ``count`` times (coloured by time) in the plane of largest extent."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import cm
+
+    t = np.asarray(traj.t)
+    P = np.asarray(traj.positions)  # (T, legs, nodes, 3)
+    i, j = sorted(np.argsort(P.reshape(-1, 3).std(axis=0))[::-1][:2])
+    f, unit = _scale(P)
+    idx = np.unique(np.linspace(0, len(t) - 1, count).round().astype(int))
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for k in idx:
+        for leg in P[k]:
+            ax.plot(leg[:, i] * f, leg[:, j] * f, color=cm.viridis(k / max(1, len(t) - 1)), lw=1.2)
+    ax.set_xlabel(f"{'xyz'[i]} [{unit}]")
+    ax.set_ylabel(f"{'xyz'[j]} [{unit}]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    sm = cm.ScalarMappable(cmap="viridis", norm=matplotlib.colors.Normalize(t[0], t[-1]))
+    fig.colorbar(sm, ax=ax, label="t [s]")
+    ax.set_title(f"{title}: rod shapes over time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,1 @@
+"""Physics: rotations, the Cosserat rod and the rigid platform (no discretisation, no robots)."""

@@ -1,0 +1,161 @@
+r"""The one assembly: residual and structured Jacobian of a robot's shooting problem.
+
+**Unknowns** $x = [\text{pose}, x_1, \dots, x_n]$: the end's pose unknowns (none for a free tip;
+`ends.py`) and, per leg, its scaled base wrench $n_i(0), m_i(0)$ (plus its multiple-shooting
+segment starts, if the step needs them). **Residuals**: the end's balance rows, then per leg its
+segment continuity and its 6 tip rows (a free tip's load, or the platform clamp's position and
+orientation).
+
+**Jacobian by legs.** A leg's integration depends only on its own unknowns and actuator; the
+pose enters the residual only algebraically. So the Jacobian is assembled from (a) each leg's
+Jacobian of [junctions, tip state] with respect to its unknowns, computed for all legs at once
+(`vmap` of coloured forward-mode JVPs: 6 for a single segment) and (b) the cheap Jacobian of the
+algebraic rows with respect to the pose and the tip states, by the chain rule: 6 leg JVPs
+instead of one full-residual JVP per unknown ($6 + 6n$: 42 for the Stewart-Gough platform).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ..numerics import newton
+from ..numerics.rod_history import RodHistory
+from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, unknowns_from_nodes
+from ..physics.rod import coefficients
+
+TIP = 18  # tip state the end sees: p, R, n, m
+
+
+def layout(scene, inertia: bool) -> Layout:
+    """Unknowns of one leg: multiple-shooting segments in dynamics only."""
+    s = scene.solver
+    return Layout(nodes=s.grid_nodes, segments=s.segments if inertia else 1, inertia=inertia)
+
+
+def scales(scene, c0=None):
+    """Units of the unknowns and residuals, from the first leg's rod (`shooting.make_scales`)."""
+    return make_scales(scene.legs.first_rod(), c0)
+
+
+def leg_rotations(lay: Layout, nodes):
+    """(n, M-1, 3, 3) rotations of each leg at its segment starts (references of their unknowns)."""
+    return jax.vmap(lambda nd: segment_rotations(lay, nd))(nodes)
+
+
+def zero_histories(scene):
+    s = scene.solver
+    return jax.vmap(lambda _: RodHistory.zeros(s.grid_nodes, s.integrator))(jnp.arange(scene.legs.count))
+
+
+class Problem:
+    """Residual and structured Jacobian of one shooting problem (Python-level, traced inside jit).
+
+    ``a``, ``adot``: actuator values and rates; ``gravity``: the rods' weight direction (scaled in
+    a homotopy); ``history`` and ``leg_R_ref``: per leg; ``end_cfg``: the end's data for this solve.
+    """
+
+    def __init__(self, scene, inertia: bool, a, adot, gravity, history, leg_R_ref, c0, end_cfg):
+        self.scene = scene
+        self.end = scene.end
+        self.cfg = end_cfg
+        self.inertia = inertia
+        self.effects = dataclasses.replace(scene.effects, inertia=inertia)
+        self.layout = layout(scene, inertia)
+        self.P = scene.end.pose_size(scene.effects)
+        self.S = self.layout.size
+        self.n = scene.legs.count
+        self.sc = scales(scene, c0 if inertia else None)
+        legs = scene.legs
+        self.k = jax.vmap(lambda rod: coefficients(rod, self.effects, c0, gravity))(legs.rod)
+        self.ds = legs.lengths(a) / scene.solver.grid_nodes
+        self.y0 = legs.base_states(a, adot, inertia)
+        self.history = history
+        self.leg_R_ref = leg_R_ref
+
+    @property
+    def size(self) -> int:
+        return self.P + self.n * self.S
+
+    # -- legs ---------------------------------------------------------------------------------
+    def _leg(self, x_i, y0, R_ref, hist, k, ds, return_stages=False):
+        s = self.scene.solver
+        return shoot(self.layout, x_i, y0, R_ref, hist, k, self.effects, ds, s.integrator, self.sc, s.unroll, return_stages)
+
+    def legs(self, xl, return_stages=False):
+        """(junctions (n, S-6), tips (n, 18), nodes (n, N+1, dim)[, stages])."""
+
+        def one(x_i, y0, R_ref, hist, k, ds):
+            out = self._leg(x_i, y0, R_ref, hist, k, ds, return_stages)
+            return (out[1], out[0][-1, :TIP], out[0]) + out[2:]
+
+        return jax.vmap(one)(xl, self.y0, self.leg_R_ref, self.history, self.k, self.ds)
+
+    def leg_jacobians(self, xl):
+        colours, mask = self.layout.colouring(extra_rows=TIP)
+
+        def one(x_i, y0, R_ref, hist, k, ds):
+            def f(z):
+                nodes, junc = self._leg(z, y0, R_ref, hist, k, ds)
+                return jnp.concatenate([junc, nodes[-1, :TIP]])
+
+            return newton.dense_jacobian(f, x_i, colours, mask)
+
+        return jax.vmap(one)(xl, self.y0, self.leg_R_ref, self.history, self.k, self.ds)
+
+    # -- end ----------------------------------------------------------------------------------
+    def pose(self, xp):
+        return self.end.pose(self.cfg, xp, self.sc, self.scene.effects.planar)
+
+    def algebraic(self, xp, tips):
+        """[balance (P), tip rows (6 per leg)] from the pose unknowns and the leg tips."""
+        bal, cons = self.end.rows(self.cfg, xp, tips, self.sc, self.scene.effects, self.inertia, self.pose(xp))
+        return jnp.concatenate([bal, cons.reshape(-1)])
+
+    # -- whole problem ------------------------------------------------------------------------
+    def split(self, x):
+        return x[: self.P], x[self.P :].reshape(self.n, self.S)
+
+    def residual(self, x):
+        xp, xl = self.split(x)
+        junc, tips, _ = self.legs(xl)
+        A = self.algebraic(xp, tips)
+        cons = A[self.P :].reshape(self.n, 6)
+        return jnp.concatenate([A[: self.P], jnp.concatenate([junc, cons], axis=1).reshape(-1)])
+
+    def jacobian(self, x):
+        P, S, n = self.P, self.S, self.n
+        xp, xl = self.split(x)
+        _, tips, _ = self.legs(xl)
+        Jl = self.leg_jacobians(xl)  # (n, S-6+18, S)
+        Jjun, Jtip = Jl[:, : S - 6], Jl[:, S - 6 :]
+        if P:
+            dA_dp, dA_dt = jax.jacfwd(self.algebraic, argnums=(0, 1))(xp, tips)  # (P+6n, P), (P+6n, n, 18)
+        else:
+            dA_dt = jax.jacfwd(lambda t: self.algebraic(xp, t))(tips)
+            dA_dp = jnp.zeros((6 * n, 0), x.dtype)
+        via = jnp.einsum("rnt,nts->rns", dA_dt, Jtip)  # (P+6n, n, S), leg-block structure
+        top = jnp.concatenate([dA_dp[:P], via[:P].reshape(P, n * S)], axis=1)
+        eye = jnp.eye(n, dtype=x.dtype)
+        jun = jnp.einsum("ij,irs->irjs", eye, Jjun).reshape(n, S - 6, n * S)
+        jun = jnp.concatenate([jnp.zeros((n, S - 6, P), x.dtype), jun], axis=2)
+        cons_via = jnp.einsum("ij,irs->irjs", eye, via[P:].reshape(n, 6, n, S).diagonal(axis1=0, axis2=2).transpose(2, 0, 1))
+        cons = jnp.concatenate([dA_dp[P:].reshape(n, 6, P), cons_via.reshape(n, 6, n * S)], axis=2)
+        rows = jnp.concatenate([jun, cons], axis=1).reshape(n * S, P + n * S)
+        return jnp.concatenate([top, rows], axis=0)
+
+    def jac_fn(self):
+        """``newton``'s ``jac_fn(f, x)``: this problem's structured Jacobian."""
+        return lambda _f, x: self.jacobian(x)
+
+    def unknowns(self, pose_unknowns, nodes):
+        return unknowns(self.layout, self.sc, pose_unknowns, nodes)
+
+
+def unknowns(lay: Layout, sc, pose_unknowns, nodes):
+    """Scaled unknowns that reproduce ``nodes`` of every leg (segment starts relative to their own
+    rotations) after the end's ``pose_unknowns``."""
+    xl = jax.vmap(lambda nd, Rr: unknowns_from_nodes(lay, nd, Rr, sc))(nodes, leg_rotations(lay, nodes))
+    return jnp.concatenate([pose_unknowns, xl.reshape(-1)])

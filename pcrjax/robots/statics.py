@@ -1,0 +1,67 @@
+"""Static equilibrium of any robot: the end's continuation plan around one Newton solve.
+
+The final solve at full load is the one differentiated (implicit function theorem); the
+continuation stages before it only provide its start.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..numerics import newton
+from . import assembly
+
+
+class StaticSolution(eqx.Module):
+    position: jnp.ndarray  # end: platform centre or first tip
+    rotation: jnp.ndarray
+    nodes: jnp.ndarray  # (n, N+1, 18)
+    unknowns: jnp.ndarray
+    stats: newton.Stats
+
+
+def solve_static(scene, t=0.0) -> StaticSolution:
+    """Static equilibrium under the actuator values and loads at time ``t``."""
+    s = scene.solver
+    legs, end = scene.legs, scene.end
+    n = legs.count
+    t = jnp.asarray(t, jnp.float64)
+    a = scene.actuator_values(t)
+    F, M = end.load(t)
+    weight = end.weight(scene.effects, scene.gravity)
+    hist = assembly.zero_histories(scene)
+
+    def problem(lam):
+        cfg = end.static_config(legs, a, F, M, weight, lam)
+        return assembly.Problem(scene, False, a, jnp.zeros_like(a), lam * scene.gravity, hist, jnp.zeros((n, 0, 3, 3)), jnp.zeros(()), cfg)
+
+    prob1 = problem(jnp.asarray(1.0))
+    pre, fallback_stages = end.static_plan(s)
+    rod_weight = prob1.k.gravity if prob1.k.gravity is not None else jnp.zeros((n, 3))
+    guess = end.static_guess(legs, a, F, M, rod_weight, prob1.sc)
+    x0 = jax.lax.stop_gradient(jnp.zeros(prob1.size) if guess is None else guess)
+    total = newton.Stats.zero()
+    jac, need = newton.Jacobian.empty(prob1.size), True
+    if pre:
+
+        def stage(carry, lam):
+            x, jac, total = carry
+            pr = problem(lam)
+            x, jac, st = newton.newton(pr.residual, x, jac, pr.jac_fn(), s.newton, need_jacobian=False)
+            return (x, jac, newton.accumulate(total, st)), None
+
+        lams = jnp.arange(1, pre, dtype=jnp.float64) / pre
+        jac = newton.Jacobian.factor(problem(jnp.asarray(0.0)).jacobian(x0))
+        (x0, jac, total), _ = jax.lax.scan(stage, (x0, jac, total), lams)
+        x0, need = jax.lax.stop_gradient(x0), False
+    fallback = None
+    if fallback_stages:
+        fallback = newton.continuation(lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x), fallback_stages, prob1.size)
+    x, _, stats = newton.solve(prob1.residual, x0, jac, prob1.jac_fn(), s.newton, need, fallback)
+    stats = newton.accumulate(total, stats)
+    xp, xl = prob1.split(x)
+    _, tips, nodes = prob1.legs(xl)
+    p, R = end.output_pose(prob1.pose(xp), tips)
+    return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats)
