@@ -41,8 +41,15 @@ TRISKELE_TRUTH = dict(tau=4e-4, lengths=[0.0312, 0.0329, 0.0308])
 
 # The thesis's camera (5.1.2) on the Triskele-bot, 2 s, nominal damping 0.15 ms switched on
 # (the fits start from a factor 3 off the truth, as the issue asks).
-TRISKELE_CAMERA = dict(scene="triskele", frame_rate=114.44, exposure=2e-4, seconds=2.0, solver=SOLVER_TRISKELE,
-                       effects=dict(damping=True), rod=dict(tau=1.5e-4))
+TRISKELE_CAMERA = dict(
+    scene="triskele",
+    frame_rate=114.44,
+    exposure=2e-4,
+    seconds=2.0,
+    solver=SOLVER_TRISKELE,
+    effects=dict(damping=True),
+    rod=dict(tau=1.5e-4),
+)
 
 RECORDINGS = {
     "triskele_push_release": dict(
@@ -50,9 +57,18 @@ RECORDINGS = {
         experiment="push_release",
         description="Triskele-bot free motion after a push on the platform is released at t = 0 (thesis 5.2), 2 s.",
         load=dict(force=[0.02, 0.0, 0.0], moment=[0.0, 0.0, 4e-4], release_time=0.0),
-        truth=dict(TRISKELE_TRUTH, push_force=[0.0168, 0.0044], push_moment=3.2e-4,
-                   frame_offset=[1.3e-3, -0.7e-3], frame_rotation=0.026, time_offset=3.1e-3,
-                   noise_position=2e-9, noise_angle=2e-6, missing_fraction=0.03, seed=11),
+        truth=dict(
+            TRISKELE_TRUTH,
+            push_force=[0.0168, 0.0044],
+            push_moment=3.2e-4,
+            frame_offset=[1.3e-3, -0.7e-3],
+            frame_rotation=0.026,
+            time_offset=3.1e-3,
+            noise_position=2e-9,
+            noise_angle=2e-6,
+            missing_fraction=0.03,
+            seed=11,
+        ),
     ),
     "triskele_actuator_step": dict(
         TRISKELE_CAMERA,
@@ -61,8 +77,16 @@ RECORDINGS = {
         "(fast, yet no fibre is pushed near its 32 mN buckling load), 2 s.",
         load=dict(force=[0.0, 0.0, 0.0], moment=[0.0, 0.0, 0.0]),
         actuation=dict(initial=[0.0, 0.0, 0.0], final=[1e-5, -5e-6, 2.5e-6], kind="smooth_step", start_time=0.05, duration=0.01),
-        truth=dict(TRISKELE_TRUTH, frame_offset=[-0.9e-3, 2.1e-3], frame_rotation=-0.035, time_offset=2.4e-3,
-                   noise_position=2e-9, noise_angle=2e-6, missing_fraction=0.03, seed=12),
+        truth=dict(
+            TRISKELE_TRUTH,
+            frame_offset=[-0.9e-3, 2.1e-3],
+            frame_rotation=-0.035,
+            time_offset=2.4e-3,
+            noise_position=2e-9,
+            noise_angle=2e-6,
+            missing_fraction=0.03,
+            seed=12,
+        ),
     ),
     "cantilever_release": dict(
         scene="cantilever",
@@ -77,8 +101,18 @@ RECORDINGS = {
         rod=dict(tau=1e-3),
         tip=dict(force=[0.0, 0.0, -2.0], moment=[0.0, 0.0, 0.0], release_time=0.0),
         # first mode 8.9 Hz: tau = 1.9 ms gives zeta = 0.053, decaying by e^-3 within 1 s
-        truth=dict(tau=1.9e-3, lengths=0.4016, push_force=[0.0, -1.93], frame_offset=[-0.21, 0.013], frame_rotation=0.012,
-                   time_offset=1.7e-3, noise_position=2e-6, noise_angle=2e-5, missing_fraction=0.02, seed=13),
+        truth=dict(
+            tau=1.9e-3,
+            lengths=0.4016,
+            push_force=[0.0, -1.93],
+            frame_offset=[-0.21, 0.013],
+            frame_rotation=0.012,
+            time_offset=1.7e-3,
+            noise_position=2e-6,
+            noise_angle=2e-5,
+            missing_fraction=0.02,
+            seed=13,
+        ),
     ),
 }
 
@@ -87,14 +121,22 @@ SENSOR = ("noise_position", "noise_angle", "missing_fraction", "seed")
 
 
 def sidecar(name: str, spec: dict) -> dict:
-    side = dict(scene=spec["scene"], experiment=spec["experiment"], frame_rate=spec["frame_rate"], exposure=spec["exposure"],
-                synthetic=True, description=spec["description"])
+    side = dict(
+        scene=spec["scene"],
+        experiment=spec["experiment"],
+        frame_rate=spec["frame_rate"],
+        exposure=spec["exposure"],
+        synthetic=True,
+        description=spec["description"],
+    )
     for table in OVERRIDES:
         if table in spec:
             side[table] = dict(spec[table])
     side["solver"]["duration"] = spec["seconds"] + 0.05
     side["truth"] = dict(spec["truth"])
-    side["provenance"] = dict(generator="experiments_data/generate.py", pcrjax=pcrjax.__version__ if hasattr(pcrjax, "__version__") else "0.1.0")
+    side["provenance"] = dict(
+        generator="experiments_data/generate.py", pcrjax=pcrjax.__version__ if hasattr(pcrjax, "__version__") else "0.1.0"
+    )
     return side
 
 
@@ -103,23 +145,41 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
     truth = spec["truth"]
     rng = np.random.default_rng(truth["seed"])
     t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
-    rec = Recording(path=out_dir / f"{name}.csv", t=t_frames, pose=np.zeros((t_frames.size, 3)), scene=spec["scene"],
-                    experiment=spec["experiment"], frame_rate=spec["frame_rate"], exposure=spec["exposure"], synthetic=True,
-                    overrides={k: side[k] for k in OVERRIDES if k in side}, truth=truth)
+    rec = Recording(
+        path=out_dir / f"{name}.csv",
+        t=t_frames,
+        pose=np.zeros((t_frames.size, 3)),
+        scene=spec["scene"],
+        experiment=spec["experiment"],
+        frame_rate=spec["frame_rate"],
+        exposure=spec["exposure"],
+        synthetic=True,
+        overrides={k: side[k] for k in OVERRIDES if k in side},
+        truth=truth,
+    )
     scene = experiment.build_scene(rec)
     params = {k: jnp.asarray(v, jnp.float64) for k, v in truth.items() if k not in SENSOR}
     s = experiment.apply(scene, params)
     traj = pcrjax.simulate(s, progress=True)
-    clean = camera.observe(experiment.planar_pose(s, traj), s.solver.dt, jnp.asarray(t_frames), spec["exposure"],
-                           params["frame_offset"], params["frame_rotation"], params["time_offset"])
+    clean = camera.observe(
+        experiment.planar_pose(s, traj),
+        s.solver.dt,
+        jnp.asarray(t_frames),
+        spec["exposure"],
+        params["frame_offset"],
+        params["frame_rotation"],
+        params["time_offset"],
+    )
     noise = rng.standard_normal(clean.shape) * np.array([truth["noise_position"], truth["noise_position"], truth["noise_angle"]])
     keep = rng.random(t_frames.size) >= truth["missing_fraction"]
     keep[0] = True
     path = out_dir / f"{name}.csv"
     write_recording(path, t_frames[keep], np.asarray(clean)[keep] + noise[keep], side)
     back = load_recording(path, require_sidecar=True)  # what users will load
-    print(f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
-          f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad")
+    print(
+        f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
+        f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad"
+    )
     return path
 
 

@@ -45,7 +45,13 @@ def _truth_theta(pb: Problem, scale_tau=1.0, scale_lengths=1.0):
 
 
 def _lm(pb, theta, t_end, max_iter=30):
-    return levenberg_marquardt(lambda th: pb.residual(th, None, t_end), lambda th: pb.residual_and_jacobian(th, None, t_end), theta, max_iter, max_step=pb.max_step)
+    return levenberg_marquardt(
+        lambda th: pb.residual(th, None, t_end),
+        lambda th: pb.residual_and_jacobian(th, None, t_end),
+        theta,
+        max_iter,
+        max_step=pb.max_step,
+    )
 
 
 def _problem(path) -> Problem:
@@ -83,8 +89,10 @@ def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), s
     lengths = [f * float(rec.t[-1]) for f in fractions]
     rng = np.random.default_rng(seed)
     u = rng.random(rec.t.size)
-    print(f"{'T s':>5} {'extra missing':>13} {'frames':>6} | {'tau err %':>9} {'SE %':>7} | {'max |dL| um':>11} {'max SE um':>9} | "
-          f"{'frame err um':>12} {'SE um':>7} | {'rot err urad':>12} {'SE':>6} | {'within 3 SE':>11} {'chi2':>5} {'it':>3} {'s':>4}")
+    print(
+        f"{'T s':>5} {'extra missing':>13} {'frames':>6} | {'tau err %':>9} {'SE %':>7} | {'max |dL| um':>11} {'max SE um':>9} | "
+        f"{'frame err um':>12} {'SE um':>7} | {'rot err urad':>12} {'SE':>6} | {'within 3 SE':>11} {'chi2':>5} {'it':>3} {'s':>4}"
+    )
     rows = []
     for T in lengths:
         for miss in missing:
@@ -99,13 +107,35 @@ def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), s
             dL = np.abs(np.atleast_1d(v["lengths"]) - tr["lengths"])
             dF = np.abs(np.asarray(v["frame_offset"]) - tr["frame_offset"])
             dR = abs(v["frame_rotation"] - tr["frame_rotation"])
-            ok = (abs(v["tau"] - tr["tau"]) < 3 * se["tau"] and np.all(dL < 3 * np.asarray(se["lengths"])) and np.all(dF < 3 * np.asarray(se["frame_offset"]))
-                  and dR < 3 * se["frame_rotation"])
-            row = dict(T=T, missing=miss, frames=int(pb.counted(t_end) / 3), tau_err=e_tau, tau_se=se["tau"] / tr["tau"], dL=dL.max(), L_se=np.max(se["lengths"]),
-                       dF=dF.max(), F_se=np.max(se["frame_offset"]), dR=dR, R_se=se["frame_rotation"], ok=ok, chi2=res.loss, it=it, s=time.perf_counter() - t1)
+            ok = (
+                abs(v["tau"] - tr["tau"]) < 3 * se["tau"]
+                and np.all(dL < 3 * np.asarray(se["lengths"]))
+                and np.all(dF < 3 * np.asarray(se["frame_offset"]))
+                and dR < 3 * se["frame_rotation"]
+            )
+            row = dict(
+                T=T,
+                missing=miss,
+                frames=int(pb.counted(t_end) / 3),
+                tau_err=e_tau,
+                tau_se=se["tau"] / tr["tau"],
+                dL=dL.max(),
+                L_se=np.max(se["lengths"]),
+                dF=dF.max(),
+                F_se=np.max(se["frame_offset"]),
+                dR=dR,
+                R_se=se["frame_rotation"],
+                ok=ok,
+                chi2=res.loss,
+                it=it,
+                s=time.perf_counter() - t1,
+            )
             rows.append(row)
-            print(f"{T:5.2f} {100 * miss:12.0f}% {row['frames']:6d} | {100 * e_tau:9.3f} {100 * row['tau_se']:7.3f} | {1e6 * row['dL']:11.4f} {1e6 * row['L_se']:9.4f} | "
-                  f"{1e6 * row['dF']:12.4f} {1e6 * row['F_se']:7.4f} | {1e6 * dR:12.3f} {1e6 * row['R_se']:6.3f} | {str(ok):>11} {res.loss:5.2f} {it:3d} {row['s']:4.0f}", flush=True)
+            print(
+                f"{T:5.2f} {100 * miss:12.0f}% {row['frames']:6d} | {100 * e_tau:9.3f} {100 * row['tau_se']:7.3f} | {1e6 * row['dL']:11.4f} {1e6 * row['L_se']:9.4f} | "
+                f"{1e6 * row['dF']:12.4f} {1e6 * row['F_se']:7.4f} | {1e6 * dR:12.3f} {1e6 * row['R_se']:6.3f} | {str(ok):>11} {res.loss:5.2f} {it:3d} {row['s']:4.0f}",
+                flush=True,
+            )
     pb.keep = np.ones(rec.t.size, bool)
     return rows
 
@@ -115,7 +145,10 @@ def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
     start = _truth_theta(pb, 1.5, 1.003)
     t0 = time.perf_counter()
     _, _, _, it_lm, conv, hist_lm = _lm(pb, start, window, 50)
-    print(f"Levenberg-Marquardt: {it_lm} iterations ({'converged' if conv else 'not converged'}), loss {hist_lm[0]:.4g} -> {hist_lm[-1]:.6g}, {time.perf_counter() - t0:.0f} s", flush=True)
+    print(
+        f"Levenberg-Marquardt: {it_lm} iterations ({'converged' if conv else 'not converged'}), loss {hist_lm[0]:.4g} -> {hist_lm[-1]:.6g}, {time.perf_counter() - t0:.0f} s",
+        flush=True,
+    )
     sigma, (mask, active) = jnp.asarray(pb.sigma), pb.window(window)
     runs = {"levenberg-marquardt": hist_lm}
     for lr in learning_rates:
@@ -123,10 +156,17 @@ def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
         report = lambda k, loss, step: print(f"  Adam lr={lr:g} step {k}: loss {loss:.6g}", flush=True) if k % 25 == 0 else None  # noqa: E731
         _, hist = adam(lambda th: pb._residual_fn(th, sigma, mask, active)[0], start, adam_steps, lr, progress=report)
         runs[f"adam lr={lr:g}"] = hist
-        fate = f"stopped at step {len(hist)}: the simulation failed there (NaN loss)" if not np.isfinite(hist[-1]) else f"{adam_steps} steps"
+        fate = (
+            f"stopped at step {len(hist)}: the simulation failed there (NaN loss)"
+            if not np.isfinite(hist[-1])
+            else f"{adam_steps} steps"
+        )
         finite = [c for c in hist if np.isfinite(c)] or [math.nan]
-        print(f"Adam (learning rate {lr:g}): {fate}, loss {hist[0]:.4g} -> best {min(finite):.6g}, last finite {finite[-1]:.6g}, "
-              f"{time.perf_counter() - t0:.0f} s", flush=True)
+        print(
+            f"Adam (learning rate {lr:g}): {fate}, loss {hist[0]:.4g} -> best {min(finite):.6g}, last finite {finite[-1]:.6g}, "
+            f"{time.perf_counter() - t0:.0f} s",
+            flush=True,
+        )
     target = 1.01 * min(np.nanmin(h) for h in runs.values())
     for name, h in runs.items():
         hit = next((k for k, c in enumerate(h) if c <= target), None)

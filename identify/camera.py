@@ -34,7 +34,9 @@ def catmull_rom(samples, dt, t):
     p1 = samples[k]
     p2 = samples[k + 1]
     p3 = samples[jnp.clip(k + 2, 0, T - 1)]
-    return 0.5 * (2.0 * p1 + (p2 - p0) * s + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * s**2 + (3.0 * p1 - p0 - 3.0 * p2 + p3) * s**3)
+    return 0.5 * (
+        2.0 * p1 + (p2 - p0) * s + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * s**2 + (3.0 * p1 - p0 - 3.0 * p2 + p3) * s**3
+    )
 
 
 def exposure_average(samples, dt, frame_times, exposure):

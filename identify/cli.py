@@ -86,8 +86,16 @@ def run(args) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     init = {} if args.tau0 is None else {"tau": args.tau0}
-    print(f"{rec.path}: {rec.frames} frames over {rec.t[-1] - rec.t[0]:.3g} s ({100 * rec.missing_fraction():.1f} % missing); building the model ...", flush=True)
-    problem = Problem(rec, tuple(f.strip() for f in args.fit.split(",") if f.strip()), scene=None if args.scene is None else _scene(rec, args.scene), initial=init)
+    print(
+        f"{rec.path}: {rec.frames} frames over {rec.t[-1] - rec.t[0]:.3g} s ({100 * rec.missing_fraction():.1f} % missing); building the model ...",
+        flush=True,
+    )
+    problem = Problem(
+        rec,
+        tuple(f.strip() for f in args.fit.split(",") if f.strip()),
+        scene=None if args.scene is None else _scene(rec, args.scene),
+        initial=init,
+    )
     print(f"fitting {', '.join(problem.labels())}", flush=True)
 
     def progress(stage, it, cost, step):
@@ -103,8 +111,10 @@ def run(args) -> dict:
     _plots(out, rec, seen, result)
     for name, v in result.values.items():
         print(f"{name:>15} = {v}  ± {result.standard_errors[name]}")
-    print(f"loss (reduced chi-square) {result.loss:.4g}, noise {result.sigma[0]:.3g} m, {result.sigma[1]:.3g} rad; "
-          f"{result.iterations} iterations, {result.wall_s:.1f} s; {'converged' if result.converged else 'NOT converged'}")
+    print(
+        f"loss (reduced chi-square) {result.loss:.4g}, noise {result.sigma[0]:.3g} m, {result.sigma[1]:.3g} rad; "
+        f"{result.iterations} iterations, {result.wall_s:.1f} s; {'converged' if result.converged else 'NOT converged'}"
+    )
     (out / "fit_state.json").unlink(missing_ok=True)  # done: a new run starts afresh
     return payload
 

@@ -112,7 +112,11 @@ def _moves(scene) -> list:
     a = scene.actuation
     if a.table_t is not None:
         return [(float(a.table_t[0]), float(a.table_t[-1]))]
-    return [(float(a.start[i]), float(a.start[i] + (a.duration[i] if k != "step" else 0.0))) for i, k in enumerate(a.kinds) if k != "constant"]
+    return [
+        (float(a.start[i]), float(a.start[i] + (a.duration[i] if k != "step" else 0.0)))
+        for i, k in enumerate(a.kinds)
+        if k != "constant"
+    ]
 
 
 def forcing_start(scene) -> float:

@@ -213,9 +213,13 @@ class Problem:
         tp, tc = self._split(theta)
         w = mask[:, None] / sigma
         # tangents of the motion for the physical unknowns only
-        motion, dmotion, ok = jax.vmap(lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,), has_aux=True), out_axes=(None, -1, None))(jnp.eye(tp.size))
+        motion, dmotion, ok = jax.vmap(
+            lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,), has_aux=True), out_axes=(None, -1, None)
+        )(jnp.eye(tp.size))
         # the camera is linear in the motion: push each tangent through it
-        d_seen = jax.vmap(lambda dm: jax.jvp(lambda m: self._observe(m, tp, tc), (motion,), (dm,))[1], in_axes=-1, out_axes=-1)(dmotion)
+        d_seen = jax.vmap(lambda dm: jax.jvp(lambda m: self._observe(m, tp, tc), (motion,), (dm,))[1], in_axes=-1, out_axes=-1)(
+            dmotion
+        )
         j_cam = jax.jacfwd(lambda c: self._observe(motion, tp, c))(tc)
         J = jnp.concatenate([d_seen, j_cam], axis=-1) * w[..., None]
         r = jnp.where(ok, self._seen_residual_fn(motion, tp, tc, sigma, mask), jnp.nan)
@@ -303,7 +307,19 @@ def _covariance(J):
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
 
 
-def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e-8, ftol=1e-10, max_step=0.5, start: dict | None = None, save=None, progress=None, initial=None):
+def levenberg_marquardt(
+    rf: Callable,
+    rj: Callable,
+    theta0,
+    max_iter=30,
+    xtol=1e-8,
+    ftol=1e-10,
+    max_step=0.5,
+    start: dict | None = None,
+    save=None,
+    progress=None,
+    initial=None,
+):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
     Steps are bounded to ``max_step`` (a number, or one per unknown: they are O(1), logs and
@@ -318,7 +334,9 @@ def levenberg_marquardt(rf: Callable, rj: Callable, theta0, max_iter=30, xtol=1e
     r, J = (np.asarray(a) for a in (rj(jnp.asarray(theta)) if initial is None or start is not None else initial))
     cost = 0.5 * float(r @ r)
     if not (np.isfinite(cost) and np.all(np.isfinite(J))):
-        raise FitError("the residual or its Jacobian at the start is not finite (a simulation whose Newton solves did not converge)")
+        raise FitError(
+            "the residual or its Jacobian at the start is not finite (a simulation whose Newton solves did not converge)"
+        )
     if not history:
         history.append(cost)
     converged = False
@@ -389,8 +407,17 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
 FREE_MODES = 2
 
 
-def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, screen_window: float = 0.2, screen_iter: int = 8, screen_best: int = 2,
-                settle_from: float = 0.6, warm=None):
+def modal_start(
+    problem: Problem,
+    theta,
+    progress=None,
+    spread: float = 1.5e-3,
+    screen_window: float = 0.2,
+    screen_iter: int = 8,
+    screen_best: int = 2,
+    settle_from: float = 0.6,
+    warm=None,
+):
     """Start values of damping and lengths from the recording's modes (`modes`).
 
     The damping time comes from the decay of the recorded modes. Lengths: Newton on features
@@ -417,7 +444,9 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     actuated = t_from > 0.0
     tau_nominal = float(np.mean(problem.fixed["tau"]))
     n_modes = 1 if actuated else min(n_rods, FREE_MODES)
-    target, tau0 = modes.recorded_modes(problem.rec, t_from, n_modes, 2 * n_modes + 1, tau_range=(tau_nominal / 10, tau_nominal * 10))
+    target, tau0 = modes.recorded_modes(
+        problem.rec, t_from, n_modes, 2 * n_modes + 1, tau_range=(tau_nominal / 10, tau_nominal * 10)
+    )
     if progress is not None:
         progress(f"modal start: recorded modes {', '.join(f'{f:.2f}' for f in target)} Hz, tau {tau0:.4g} s", 0, None, None)
     if "tau" in problem.slices:
@@ -429,9 +458,13 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
         rec = problem.rec
         late = rec.t >= min(max(settle_from, t_from), 0.5 * (t_from + rec.t[-1]))  # a short recording: its second half
         before = rec.pose[rec.t < experiment.forcing_start(problem.scene)]
-        target = np.asarray(frame_invariant(modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(before, axis=0)))
+        target = np.asarray(
+            frame_invariant(modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(before, axis=0))
+        )
         if progress is not None:
-            progress(f"modal start: static response to the move {target[0] * 1e6:.4g} um, {target[1] * 1e6:.4g} urad", 0, None, None)
+            progress(
+                f"modal start: static response to the move {target[0] * 1e6:.4g} um, {target[1] * 1e6:.4g} urad", 0, None, None
+            )
         model_shift = static_shift(problem.scene)
         features_of = lambda x: np.asarray(model_shift(jnp.asarray(x)))  # noqa: E731
     else:
@@ -455,11 +488,18 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
         for j, job in enumerate(matched):
             x, ok = job.result()
             if progress is not None:
-                progress(f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded features", j + 1, None, None)
+                progress(
+                    f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded features",
+                    j + 1,
+                    None,
+                    None,
+                )
             if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
                 found.append(x)
     if not found:
-        raise RecordingError(f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})")
+        raise RecordingError(
+            f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})"
+        )
     if len(found) == 1:
         theta[i_len] = found[0]
         return theta, None
@@ -478,7 +518,14 @@ def modal_start(problem: Problem, theta, progress=None, spread: float = 1.5e-3, 
     best, best_hist, iterations = None, [np.inf], 0
     for j, (_, _, th) in enumerate(ranked):
         try:
-            th, _, _, it, _, hist = levenberg_marquardt(lambda a: problem.residual(a, None, t_screen), lambda a: problem.residual_and_jacobian(a, None, t_screen), th, screen_iter, ftol=1e-6, max_step=problem.max_step)
+            th, _, _, it, _, hist = levenberg_marquardt(
+                lambda a: problem.residual(a, None, t_screen),
+                lambda a: problem.residual_and_jacobian(a, None, t_screen),
+                th,
+                screen_iter,
+                ftol=1e-6,
+                max_step=problem.max_step,
+            )
         except FitError:  # the simulation fails there: not a candidate
             continue
         iterations += it
@@ -501,7 +548,9 @@ def static_shift(scene):
     """Jitted ``log lengths -> frame_invariant`` of the static equilibrium after the actuators'
     moves relative to the one before (m and rad)."""
     end = scene.actuation(jnp.asarray(experiment.forcing_end(scene)))
-    held = Actuation(initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0])
+    held = Actuation(
+        initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0]
+    )
     after = eqx.tree_at(lambda s: s.actuation, scene, held)
 
     def planar(s, lengths):
@@ -532,7 +581,9 @@ def windows(duration: float, first: float = 0.1) -> list:
     return out + [None]
 
 
-def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=None, first_window: float = 0.1, modal: bool = True) -> Result:
+def fit(
+    problem: Problem, max_iter=30, state_dir: Path | None = None, progress=None, first_window: float = 0.1, modal: bool = True
+) -> Result:
     """Fit by continuation in the recording's length, then once more with estimated noise levels.
 
     A frequency error wraps the phase of an oscillation, so over a whole recording the loss has
@@ -545,7 +596,10 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
     """
     t0 = time.perf_counter()
     duration = float(problem.t[-1] - problem.t[0])
-    stages = [(f"window {w:g} s", w) for w in windows(duration, first_window)[:-1]] + [("whole recording", None), ("whole recording, noise re-estimated", None)]
+    stages = [(f"window {w:g} s", w) for w in windows(duration, first_window)[:-1]] + [
+        ("whole recording", None),
+        ("whole recording, noise re-estimated", None),
+    ]
     state_file = None if state_dir is None else Path(state_dir) / "fit_state.json"
     theta = np.asarray(problem.to_theta(problem.initial_values))
     problem.sigma = NOMINAL_SIGMA.copy()
@@ -558,8 +612,19 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
 
     def save(lm_state, k):
         if state_file is not None:
-            state_file.write_text(json.dumps(dict(recording=str(problem.rec.path), labels=problem.labels(), stage=k, sigma=list(map(float, problem.sigma)),
-                                                  history_before=history, iterations_before=total_it, lm=lm_state)))
+            state_file.write_text(
+                json.dumps(
+                    dict(
+                        recording=str(problem.rec.path),
+                        labels=problem.labels(),
+                        stage=k,
+                        sigma=list(map(float, problem.sigma)),
+                        history_before=history,
+                        iterations_before=total_it,
+                        lm=lm_state,
+                    )
+                )
+            )
 
     if modal and resume is None:
         # The Jacobian's program (20-40 s of tracing and compiling) is built in a thread while the
@@ -578,7 +643,14 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
             done = sum(1 for _, w in stages if w is not None and w <= screened["window"] + 1e-9)
             total_it += screened["iterations"]
             history += screened["history"]
-            summary.append(dict(stage=f"screening of {screened['candidates']} candidates, window {screened['window']:g} s", iterations=screened["iterations"], loss=screened["history"][-1], converged=True))
+            summary.append(
+                dict(
+                    stage=f"screening of {screened['candidates']} candidates, window {screened['window']:g} s",
+                    iterations=screened["iterations"],
+                    loss=screened["history"][-1],
+                    converged=True,
+                )
+            )
         resume = dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0)
         save(resume, done)  # an interrupted fit resumes after the modal start
     r = J = None  # the last pass's residuals and Jacobian
@@ -601,20 +673,40 @@ def fit(problem: Problem, max_iter=30, state_dir: Path | None = None, progress=N
 
         try:
             theta, J, r, it, converged, hist = levenberg_marquardt(
-                lambda th: problem.residual(th, sigma, t_end), lambda th: problem.residual_and_jacobian(th, sigma, t_end), theta,
-                max_iter, ftol=FINAL_FTOL / problem.counted(None) if final else 1e-6, max_step=problem.max_step, start=resume if k == done else None, save=lambda st, k=k: save(st, k),
-                progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)), initial=initial,
+                lambda th: problem.residual(th, sigma, t_end),
+                lambda th: problem.residual_and_jacobian(th, sigma, t_end),
+                theta,
+                max_iter,
+                ftol=FINAL_FTOL / problem.counted(None) if final else 1e-6,
+                max_step=problem.max_step,
+                start=resume if k == done else None,
+                save=lambda st, k=k: save(st, k),
+                progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
+                initial=initial,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))
             vals = {u.name: np.round(np.asarray(at[u.name], float), 9).tolist() for u in problem.unknowns}
-            raise FitError(f"{problem.rec.path}: {label}: {e}; values {vals}. A smaller [solver] dt in the sidecar or other start values (--tau0) may help") from None
+            raise FitError(
+                f"{problem.rec.path}: {label}: {e}; values {vals}. A smaller [solver] dt in the sidecar or other start values (--tau0) may help"
+            ) from None
         resume = None
         total_it += it
         history += hist
         summary.append(dict(stage=label, iterations=it, loss=hist[-1], converged=bool(converged)))
         save(dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0), k + 1)
-    return summarize(problem, theta, J, r, t_end=None, iterations=total_it, wall_s=time.perf_counter() - t0, converged=converged, history=history, stages=summary)
+    return summarize(
+        problem,
+        theta,
+        J,
+        r,
+        t_end=None,
+        iterations=total_it,
+        wall_s=time.perf_counter() - t0,
+        converged=converged,
+        history=history,
+        stages=summary,
+    )
 
 
 def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
@@ -639,5 +731,13 @@ def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
     values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
     errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
     res = (r.reshape(-1, 3) * problem.sigma)[keep]
-    return Result(labels=problem.labels(), values=values, standard_errors=errors, correlation=corr.tolist(),
-                  sigma=[float(problem.sigma[0]), float(problem.sigma[2])], loss=chi2, rms=np.sqrt(np.mean(res**2, axis=0)).tolist(), **info)
+    return Result(
+        labels=problem.labels(),
+        values=values,
+        standard_errors=errors,
+        correlation=corr.tolist(),
+        sigma=[float(problem.sigma[0]), float(problem.sigma[2])],
+        loss=chi2,
+        rms=np.sqrt(np.mean(res**2, axis=0)).tolist(),
+        **info,
+    )

@@ -39,7 +39,9 @@ def poles(t, pose, frame_rate, order: int, window: int = 12):
             if np.all(np.isfinite(w)):
                 rows.append(w)
     if len(rows) <= order:
-        raise ValueError(f"{len(rows)} windows of {window} consecutive frames, more than {order} needed to estimate the modes (a recording too short, or too many frames missing)")
+        raise ValueError(
+            f"{len(rows)} windows of {window} consecutive frames, more than {order} needed to estimate the modes (a recording too short, or too many frames missing)"
+        )
     Y = np.asarray(rows)
     _, _, vt = np.linalg.svd(Y, full_matrices=False)
     V = vt[:order].T  # (window, order): the signal subspace
@@ -91,11 +93,15 @@ def recorded_modes(rec, t_from: float = 0.0, n_modes: int = 3, order: int | None
     f, d = describe(z, rec.frame_rate)
     osc = (f > 1e-3 * rec.frame_rate) & (f < 0.49 * rec.frame_rate) & (d > 0)
     if osc.sum() < n_modes:
-        raise ValueError(f"{rec.path}: {osc.sum()} decaying oscillations found after t = {t_from:g} s, {n_modes} needed for the modal initialisation")
+        raise ValueError(
+            f"{rec.path}: {osc.sum()} decaying oscillations found after t = {t_from:g} s, {n_modes} needed for the modal initialisation"
+        )
     lowest = np.argsort(f[osc])[:n_modes]
     freqs, tau = unalias(f[osc][lowest], d[osc][lowest], rec.frame_rate, tau_range=tau_range)
     if freqs is None:
-        raise ValueError(f"{rec.path}: no unaliasing of the recorded modes gives a damping time within {tau_range[0]:.3g}-{tau_range[1]:.3g} s")
+        raise ValueError(
+            f"{rec.path}: no unaliasing of the recorded modes gives a damping time within {tau_range[0]:.3g}-{tau_range[1]:.3g} s"
+        )
     return freqs, tau
 
 

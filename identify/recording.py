@@ -143,7 +143,9 @@ def write_recording(path, t, pose, sidecar: dict) -> None:
     """Write ``path`` (CSV, full float precision) and its sidecar TOML."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    rows = [",".join(COLUMNS)] + [f"{ti!r},{x!r},{y!r},{th!r}" for ti, (x, y, th) in zip(np.asarray(t, float).tolist(), np.asarray(pose, float).tolist())]
+    rows = [",".join(COLUMNS)] + [
+        f"{ti!r},{x!r},{y!r},{th!r}" for ti, (x, y, th) in zip(np.asarray(t, float).tolist(), np.asarray(pose, float).tolist())
+    ]
     p.write_text("\n".join(rows) + "\n")
     sidecar_path(p).write_text(dumps_toml(sidecar))
 

@@ -23,7 +23,11 @@ def _scene(args):
     from .io.scene_file import load_scene, with_solver
 
     scene = load_scene(args.scene)
-    changes = {k: getattr(args, k) for k in ("nodes", "integrator", "dt", "alpha", "duration", "tol") if getattr(args, k, None) is not None}
+    changes = {
+        k: getattr(args, k)
+        for k in ("nodes", "integrator", "dt", "alpha", "duration", "tol")
+        if getattr(args, k, None) is not None
+    }
     return with_solver(scene, **changes) if changes else scene
 
 
@@ -120,7 +124,9 @@ def cmd_inverse(args) -> int:
     scene = load_scene(args.scene)
     if not scene.legs.actuated:
         raise SceneError(f"{args.scene}: inverse dynamics needs actuated legs; robot '{scene.robot}' has none")
-    raise SceneError(f"{args.scene}: inverse dynamics is not available in this version (forward dynamics and statics are: `pcrjax simulate`, `pcrjax static`)")
+    raise SceneError(
+        f"{args.scene}: inverse dynamics is not available in this version (forward dynamics and statics are: `pcrjax simulate`, `pcrjax static`)"
+    )
 
 
 def _add_solver_overrides(p):
@@ -155,7 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nodes", help="comma-separated N values for RK4; default per case")
     p.add_argument("--euler-nodes", help="comma-separated N values for explicit Euler (empty string: none); default per case")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
-    p.add_argument("--reference-nodes", type=int, help="N of the converged RK4 reference (default 320 cantilever, 80 Stewart-Gough, 100 Triskele)")
+    p.add_argument(
+        "--reference-nodes",
+        type=int,
+        help="N of the converged RK4 reference (default 320 cantilever, 80 Stewart-Gough, 100 Triskele)",
+    )
     p.add_argument("--noise", action="store_true", help="stewart_gough: also print the thesis noise table (alpha x N x dt)")
     p.add_argument("--noise-nodes", default="5,10,50,85,170", help="N values of the noise table")
     p.add_argument("--tol", type=float, default=1e-10, help="Newton tolerance of the measured runs (reference: 1e-12)")

@@ -23,7 +23,9 @@ def require_x64():
 def cache_dir() -> Path | None:
     if os.environ.get("PCRJAX_NO_CACHE"):
         return None
-    d = os.environ.get("PCRJAX_CACHE_DIR") or os.path.join(os.environ.get("XDG_CACHE_HOME", str(Path.home() / ".cache")), "pcrjax", "jax")
+    d = os.environ.get("PCRJAX_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", str(Path.home() / ".cache")), "pcrjax", "jax"
+    )
     return Path(d)
 
 

@@ -140,7 +140,9 @@ def _scan_steps(scene, state, i0, count: int, active=None):
     def hold(st, i):  # past the active steps: state kept, zero outputs, no solve
         return st, jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), out_shape)
 
-    return jax.lax.scan(lambda st, i: jax.lax.cond(i < active, lambda s, j: advance_jaxpr(s, j, *consts), hold, st, i), state, steps)
+    return jax.lax.scan(
+        lambda st, i: jax.lax.cond(i < active, lambda s, j: advance_jaxpr(s, j, *consts), hold, st, i), state, steps
+    )
 
 
 def _assemble(scene, static, state0, outs, steps):
@@ -266,7 +268,9 @@ def simulate(
     jax.block_until_ready(state)
     if int(static.stats.result) != results.SUCCESSFUL:
         code, res = int(static.stats.result), float(static.stats.residual)
-        raise ConvergenceError(f"initial static equilibrium did not converge: {results.message(code)} (scaled residual {res:.3e})", 0.0, res, code)
+        raise ConvergenceError(
+            f"initial static equilibrium did not converge: {results.message(code)} (scaled residual {res:.3e})", 0.0, res, code
+        )
     # Compile the chunk once (lower+compile), so run time excludes compilation.
     compiled = _compiled_advance(scene, state, chunk)
     compile_s = time.perf_counter() - t_c0

@@ -32,7 +32,15 @@ def rod_scene(
     data = {
         "name": "test",
         "robot": "rod",
-        "solver": {"nodes": nodes, "integrator": integrator, "dt": dt, "alpha": alpha, "duration": duration, "tol": tol, **solver_extra},
+        "solver": {
+            "nodes": nodes,
+            "integrator": integrator,
+            "dt": dt,
+            "alpha": alpha,
+            "duration": duration,
+            "tol": tol,
+            **solver_extra,
+        },
         "effects": eff,
         "environment": {"gravity": list(gravity)},
         "rod": rod,

@@ -107,5 +107,7 @@ def test_console_script_runs_shipped_scene(tmp_path):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["newton_iterations"] > 0
-    r = subprocess.run([sys.executable, "-m", "pcrjax.cli", "static", str(tmp_path / "x.toml")], capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "pcrjax.cli", "static", str(tmp_path / "x.toml")], capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1

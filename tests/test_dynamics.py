@@ -52,7 +52,9 @@ def test_bdf_alpha_numerical_damping_at_h_half(alpha, expected):
 
 def _rest_drift(integrator, nodes):
     # Load held for the whole run: the static equilibrium should be a solution of every step.
-    scene = rod_scene(force=(0, 0, -2.0), release_time=10.0, nodes=nodes, dt=5e-3, alpha=-0.2, duration=0.25, integrator=integrator)
+    scene = rod_scene(
+        force=(0, 0, -2.0), release_time=10.0, nodes=nodes, dt=5e-3, alpha=-0.2, duration=0.25, integrator=integrator
+    )
     tr = pcrjax.simulate(scene)
     return np.abs(np.asarray(tr.position) - np.asarray(tr.position)[0]).max()
 
@@ -92,8 +94,13 @@ def test_quadratic_air_drag_matches_single_mode_theory():
     k_theory = 4 * W1 / (3 * math.pi) * c_eff / m_eff
     dt = 0.05 / W1
     scene = rod_scene(
-        force=(0, 0, -0.02), nodes=20, dt=dt, alpha=-0.5, duration=1.0,
-        effects={"drag": True}, rod_extra={"drag_coefficients": [Cx, Cx, 0.0]},
+        force=(0, 0, -0.02),
+        nodes=20,
+        dt=dt,
+        alpha=-0.5,
+        duration=1.0,
+        effects={"drag": True},
+        rod_extra={"drag_coefficients": [Cx, Cx, 0.0]},
     )
     t, z = _tip_z(scene)
     (w1, _), (w2, _) = fit_sinusoids(t, z, [W1, 6.27 * W1])[0]

@@ -40,7 +40,9 @@ def test_changing_numbers_does_not_retrace():
         return pcrjax.rollout(scene).position[-1]
 
     a = rod_scene(nodes=5, duration=0.02, effects={"damping": True}, rod_extra={"tau": 1e-4})
-    b = rod_scene(nodes=5, duration=0.02, L=0.35, E=190e9, dt=5e-3, alpha=-0.3, effects={"damping": True}, rod_extra={"tau": 3e-4})
+    b = rod_scene(
+        nodes=5, duration=0.02, L=0.35, E=190e9, dt=5e-3, alpha=-0.3, effects={"damping": True}, rod_extra={"tau": 3e-4}
+    )
     tip(a)
     tip(b)
     assert len(traces) == 1

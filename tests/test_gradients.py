@@ -67,8 +67,14 @@ def test_static_tip_gradient_length_and_E():
 
 def _dyn_scene(damping):
     return rod_scene(
-        force=(0, 0, -0.5), nodes=8, dt=2e-3, alpha=-0.2, duration=0.1, tol=1e-13,
-        effects={"damping": True}, rod_extra=damping,
+        force=(0, 0, -0.5),
+        nodes=8,
+        dt=2e-3,
+        alpha=-0.2,
+        duration=0.1,
+        tol=1e-13,
+        effects={"damping": True},
+        rod_extra=damping,
     )
 
 

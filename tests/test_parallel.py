@@ -100,7 +100,9 @@ def test_triskele_small_motion_matches_rigid_strut_kinematics():
 
 def with_damping(sc, taus):
     sc = dataclasses.replace(sc, effects=dataclasses.replace(sc.effects, damping=True))
-    return eqx.tree_at(lambda s: s.legs.rod.damping, sc, pcrjax.physics.rod.TauDamping(tau=jnp.asarray(taus)), is_leaf=lambda x: x is None)
+    return eqx.tree_at(
+        lambda s: s.legs.rod.damping, sc, pcrjax.physics.rod.TauDamping(tau=jnp.asarray(taus)), is_leaf=lambda x: x is None
+    )
 
 
 def test_triskele_settles_to_statics_after_actuator_step():
@@ -139,7 +141,9 @@ def _stepped(alpha, taus, dt):
     """Damped Triskele, 50 steps after a 2 um (and -1, 0.5 um) actuator step at t = 0, tol 1e-12."""
     sc = with_damping(triskele(alpha=alpha, dt=dt, duration=50 * dt, tol=1e-12), taus)
     sc = eqx.tree_at(lambda s: (s.load.force, s.load.moment), sc, NO_LOAD)
-    return dataclasses.replace(sc, actuation=dataclasses.replace(sc.actuation, final=jnp.array([2e-6, -1e-6, 0.5e-6]), kinds=("step",) * 3))
+    return dataclasses.replace(
+        sc, actuation=dataclasses.replace(sc.actuation, final=jnp.array([2e-6, -1e-6, 0.5e-6]), kinds=("step",) * 3)
+    )
 
 
 @pytest.mark.slow  # 3-3.5 min cold (compiling the gradient); passes: see the issue note

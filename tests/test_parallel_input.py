@@ -48,13 +48,33 @@ initial = [0.0, 0.0, 0.0]
 CSV_OK = "t_s,a1,a2,a3\n0,0,0,0\n0.01,1e-6,0,0\n"
 
 BAD = {
-    "legs_too_short": (SG.replace("initial = [0.17, 0.17, 0.17, 0.17, 0.17, 0.17]", "initial = [0.05, 0.17, 0.17, 0.17, 0.17, 0.17]"), None, "leg 1 cannot reach the platform"),
-    "attachment_out_of_reach": (TRISKELE.replace("[platform]", "[geometry]\nattachment = [[0.0, 0.3], [0.0, 0.0], [0.01, 0.0]]\n[platform]"), None, "cannot reach the platform"),
-    "actuator_count": (SG.replace("initial = [0.17, 0.17, 0.17, 0.17, 0.17, 0.17]", "initial = [0.17, 0.17, 0.17, 0.17, 0.17]"), None, "must have 6 entries"),
-    "negative_leg_length": (SG.replace("initial = [0.17, 0.17, 0.17, 0.17, 0.17, 0.17]", "initial = [-0.17, 0.17, 0.17, 0.17, 0.17, 0.17]"), None, "leg lengths must be > 0"),
+    "legs_too_short": (
+        SG.replace("initial = [0.17, 0.17, 0.17, 0.17, 0.17, 0.17]", "initial = [0.05, 0.17, 0.17, 0.17, 0.17, 0.17]"),
+        None,
+        "leg 1 cannot reach the platform",
+    ),
+    "attachment_out_of_reach": (
+        TRISKELE.replace("[platform]", "[geometry]\nattachment = [[0.0, 0.3], [0.0, 0.0], [0.01, 0.0]]\n[platform]"),
+        None,
+        "cannot reach the platform",
+    ),
+    "actuator_count": (
+        SG.replace("initial = [0.17, 0.17, 0.17, 0.17, 0.17, 0.17]", "initial = [0.17, 0.17, 0.17, 0.17, 0.17]"),
+        None,
+        "must have 6 entries",
+    ),
+    "negative_leg_length": (
+        SG.replace("initial = [0.17, 0.17, 0.17, 0.17, 0.17, 0.17]", "initial = [-0.17, 0.17, 0.17, 0.17, 0.17, 0.17]"),
+        None,
+        "leg lengths must be > 0",
+    ),
     "csv_columns": (TRISKELE + 'file = "a.csv"\n', "t_s,a1,a2\n0,0,0\n0.01,0,0\n", "header must be t_s,a1,a2,a3"),
     "csv_gap": (TRISKELE + 'file = "a.csv"\n', "t_s,a1,a2,a3\n0,0,0,0\n0.01,,0,0\n", "column a1 is empty (gap"),
-    "csv_unsorted": (TRISKELE + 'file = "a.csv"\n', "t_s,a1,a2,a3\n0,0,0,0\n0.02,0,0,0\n0.01,0,0,0\n", "times must strictly increase"),
+    "csv_unsorted": (
+        TRISKELE + 'file = "a.csv"\n',
+        "t_s,a1,a2,a3\n0,0,0,0\n0.02,0,0,0\n0.01,0,0,0\n",
+        "times must strictly increase",
+    ),
     "csv_nan": (TRISKELE + 'file = "a.csv"\n', "t_s,a1,a2,a3\n0,0,0,0\n0.01,nan,0,0\n", "not finite"),
     "csv_text": (TRISKELE + 'file = "a.csv"\n', "t_s,a1,a2,a3\n0,0,0,0\n0.01,abc,0,0\n", "not a number"),
     "csv_missing": (TRISKELE + 'file = "nowhere.csv"\n', None, "no such file"),
@@ -62,8 +82,16 @@ BAD = {
     "ramp_without_duration": (TRISKELE + 'kind = "ramp"\nfinal = [1e-6, 0.0, 0.0]\n', None, "duration: must be > 0"),
     "step_without_final": (TRISKELE + 'kind = "step"\n', None, "final: missing"),
     "unknown_kind": (TRISKELE + 'kind = "jump"\n', None, "[actuation] kind"),
-    "unknown_geometry_key": (TRISKELE.replace("[platform]", "[geometry]\nradius = 1.0\n[platform]"), None, "unknown key 'radius'"),
-    "sg_key_on_triskele": (TRISKELE.replace("[platform]", "[geometry]\nbase_radius = 0.08\n[platform]"), None, "applies to the stewart_gough robot"),
+    "unknown_geometry_key": (
+        TRISKELE.replace("[platform]", "[geometry]\nradius = 1.0\n[platform]"),
+        None,
+        "unknown key 'radius'",
+    ),
+    "sg_key_on_triskele": (
+        TRISKELE.replace("[platform]", "[geometry]\nbase_radius = 0.08\n[platform]"),
+        None,
+        "applies to the stewart_gough robot",
+    ),
     "rods_count": (TRISKELE + "[[rods]]\nlength = 0.03\n", None, "has 1 entries but the robot has 3 legs"),
     "missing_mass": (TRISKELE.replace("mass = 0.04\n", ""), None, "[platform] mass: missing required key"),
     "unknown_top_level": (TRISKELE + "[base]\nposition = [0.0, 0.0, 0.0]\n", None, "unknown key 'base'"),

@@ -63,7 +63,6 @@ def _cantilever_dicts() -> dict:
     return {"thesis": thesis, "till": till}
 
 
-
 def _sg_motion(scene):
     act = scene.actuation
     final = act.initial.at[:3].add(0.01)
@@ -74,10 +73,18 @@ def _sg_motion(scene):
 def _triskele_move(scene):
     act = scene.actuation
     moved = dataclasses.replace(
-        act, final=act.initial + jnp.array([1e-3, -0.5e-3, 0.25e-3]), start=jnp.full(3, 0.05), duration=jnp.full(3, 0.2), kinds=("smooth_step",) * 3
+        act,
+        final=act.initial + jnp.array([1e-3, -0.5e-3, 0.25e-3]),
+        start=jnp.full(3, 0.05),
+        duration=jnp.full(3, 0.2),
+        kinds=("smooth_step",) * 3,
     )
     zero = jnp.zeros(3)
-    return dataclasses.replace(scene, actuation=moved, end=dataclasses.replace(scene.end, load=dataclasses.replace(scene.end.load, force=zero, moment=zero)))
+    return dataclasses.replace(
+        scene,
+        actuation=moved,
+        end=dataclasses.replace(scene.end, load=dataclasses.replace(scene.end.load, force=zero, moment=zero)),
+    )
 
 
 TILL = "Till's C++ (N = 40 Euler): 78 us/step, RTF 27 (63 hand-optimised)."
@@ -90,7 +97,9 @@ def cases(robot: str, nodes=None, euler_nodes=None, reference_nodes=None) -> lis
         out = []
         for label, d in _cantilever_dicts().items():
             scene = scene_from_dict(d, f"<bench {d['name']}>")
-            out.append(Case(label, scene, grid, [float(scene.solver.dt)], reference_nodes or 320, TILL if label == "till" else ""))
+            out.append(
+                Case(label, scene, grid, [float(scene.solver.dt)], reference_nodes or 320, TILL if label == "till" else "")
+            )
         return out
     if robot == "stewart_gough":
         base = with_solver(_sg_motion(load_scene("stewart_gough")), alpha=-0.2)
@@ -100,4 +109,7 @@ def cases(robot: str, nodes=None, euler_nodes=None, reference_nodes=None) -> lis
     base = load_scene("triskele")
     grid = _grid(nodes, euler_nodes, "10,20,50", "50,200")
     note = "Target: real time (RTF >= 1) at N = 50 RK4, dt = 1 ms (thesis section 4.3.2)."
-    return [Case("triskele", base, grid, [1e-3, 5e-4], reference_nodes or 100, note), Case("triskele_move", _triskele_move(base), grid, [1e-3], reference_nodes or 100)]
+    return [
+        Case("triskele", base, grid, [1e-3, 5e-4], reference_nodes or 100, note),
+        Case("triskele_move", _triskele_move(base), grid, [1e-3], reference_nodes or 100),
+    ]

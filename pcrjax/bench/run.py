@@ -94,8 +94,10 @@ def _sweep(case, duration, tol):
 def _noise_table(nodes, duration):
     base = load_scene("stewart_gough")
     table = {}
-    print("\nThesis noise (eq. 4.15-4.17) of the unperturbed Stewart-Gough equilibrium; thesis Tables 4.3-4.4: -3.5 .. -8.5; target <= -11."
-          " '-inf': the platform did not move at all (RMS 0).")
+    print(
+        "\nThesis noise (eq. 4.15-4.17) of the unperturbed Stewart-Gough equilibrium; thesis Tables 4.3-4.4: -3.5 .. -8.5; target <= -11."
+        " '-inf': the platform did not move at all (RMS 0)."
+    )
     print(f"{'dt s':>8}{'alpha':>7}" + "".join(f"{'N=' + str(n):>10}" for n in nodes) + f"{'  max Newton it':>16}")
     for dt in (5e-3, 1e-2):
         for alpha in (0.0, -0.2, -0.4, -0.5):
@@ -106,7 +108,12 @@ def _noise_table(nodes, duration):
                 cells.append(v)
                 its = max(its, int(np.max(tr.iterations)))
                 table[f"dt={dt},alpha={alpha},N={n}"] = v
-            print(f"{dt:>8.3g}{alpha:>7.2g}" + "".join(f"{c:>10.2f}" if math.isfinite(c) else f"{'-inf':>10}" for c in cells) + f"{its:>16}", flush=True)
+            print(
+                f"{dt:>8.3g}{alpha:>7.2g}"
+                + "".join(f"{c:>10.2f}" if math.isfinite(c) else f"{'-inf':>10}" for c in cells)
+                + f"{its:>16}",
+                flush=True,
+            )
     return table
 
 
@@ -116,7 +123,9 @@ def run_bench(args) -> dict:
     print(HEADER, flush=True)
     for case in cases(args.case, args.nodes, args.euler_nodes, args.reference_nodes):
         out["rows"] += _sweep(case, args.duration, args.tol)
-    print(f"Newton tol {args.tol:g} (scaled max-norm); reference: finest RK4, tol 1e-12, same dt; 'grid': internal nodes x shooting segments.")
+    print(
+        f"Newton tol {args.tol:g} (scaled max-norm); reference: finest RK4, tol 1e-12, same dt; 'grid': internal nodes x shooting segments."
+    )
     if args.noise and args.case == "stewart_gough":
         out["noise"] = _noise_table([int(n) for n in str(args.noise_nodes).split(",")], args.duration)
     if args.json:

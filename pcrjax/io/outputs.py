@@ -125,7 +125,16 @@ def plot_end(path: Path, traj, title: str, label: str):
     _time_series(ax[0], t, d * f, [f"{c} − {c}(0)" for c in "xyz"], f"{label} displacement [{unit}]")
     _time_series(ax[1], t, (rv - rv[0]) * fr, [f"r{c} − r{c}(0)" for c in "xyz"], f"rotation vector change [{runit}]")
     i, j = sorted(np.argsort(d.std(axis=0))[::-1][:2])
-    _path(fig, ax[2], t, d[:, i] * f, d[:, j] * f, f"{'xyz'[i]} − {'xyz'[i]}(0) [{unit}]", f"{'xyz'[j]} − {'xyz'[j]}(0) [{unit}]", f"{label} path")
+    _path(
+        fig,
+        ax[2],
+        t,
+        d[:, i] * f,
+        d[:, j] * f,
+        f"{'xyz'[i]} − {'xyz'[i]}(0) [{unit}]",
+        f"{'xyz'[j]} − {'xyz'[j]}(0) [{unit}]",
+        f"{label} path",
+    )
     _save(fig, path, title)
 
 

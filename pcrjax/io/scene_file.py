@@ -56,12 +56,30 @@ _SCHEMA = {
     "solver": {"nodes", "integrator", "dt", "alpha", "duration", "tol", "max_iter", "segments", "unroll", "continuation"},
     "effects": {"inertia", "gravity", "damping", "drag", "shear_extension", "planar"},
     "environment": {"gravity"},
-    "rod": {"length", "radius", "youngs_modulus", "shear_modulus", "density", "tau", "bse", "bbt", "drag_coefficients", "precurvature"},
+    "rod": {
+        "length",
+        "radius",
+        "youngs_modulus",
+        "shear_modulus",
+        "density",
+        "tau",
+        "bse",
+        "bbt",
+        "drag_coefficients",
+        "precurvature",
+    },
     "base": {"position", "direction", "normal"},
     "tip": {"force", "moment", "release_time"},
     "geometry": {
-        "base_radius", "platform_radius", "base_angles", "platform_angles",  # stewart_gough
-        "actuator_radius", "gamma", "phi", "clamp_angles", "attachment",  # triskele
+        "base_radius",
+        "platform_radius",
+        "base_angles",
+        "platform_angles",  # stewart_gough
+        "actuator_radius",
+        "gamma",
+        "phi",
+        "clamp_angles",
+        "attachment",  # triskele
     },
     "platform": {"mass", "inertia", "position", "rotation_vector", "angle"},
     "actuation": {"initial", "final", "kind", "start_time", "duration", "file"},
@@ -189,7 +207,9 @@ def _rod_robot(r: _Reader, robot: str, name: str) -> Scene:
     rod = read_rod(r, r.table("rod"), "rod", effects)
     bs = r.table("base")
     tp = r.table("tip")
-    R0 = _frame(r, r.vector(bs, "base", "direction", np.array([1.0, 0, 0])), r.vector(bs, "base", "normal", np.array([0, 0, 1.0])))
+    R0 = _frame(
+        r, r.vector(bs, "base", "direction", np.array([1.0, 0, 0])), r.vector(bs, "base", "normal", np.array([0, 0, 1.0]))
+    )
     legs = Legs(
         rod=jax.tree.map(lambda a: a[None], rod),
         base_position=_f(r.vector(bs, "base", "position", np.zeros(3)))[None],
@@ -197,10 +217,21 @@ def _rod_robot(r: _Reader, robot: str, name: str) -> Scene:
         kind="fixed",
     )
     load = Load.held_until(
-        _f(r.vector(tp, "tip", "force", np.zeros(3))), _f(r.vector(tp, "tip", "moment", np.zeros(3))), _f(r.number(tp, "tip", "release_time", 0.0))
+        _f(r.vector(tp, "tip", "force", np.zeros(3))),
+        _f(r.vector(tp, "tip", "moment", np.zeros(3))),
+        _f(r.number(tp, "tip", "release_time", 0.0)),
     )
     solver = make_solver(legs.rod, legs.rod.length, **read_solver(r))
-    return Scene(legs=legs, end=FreeTip(load=load), actuation=None, gravity=read_gravity(r), effects=effects, solver=solver, name=name, robot=robot)
+    return Scene(
+        legs=legs,
+        end=FreeTip(load=load),
+        actuation=None,
+        gravity=read_gravity(r),
+        effects=effects,
+        solver=solver,
+        name=name,
+        robot=robot,
+    )
 
 
 def read_effects(r: _Reader, planar: bool) -> Effects:
@@ -286,7 +317,7 @@ def read_solver(r: _Reader) -> dict:
         out[key] = v
     segments = sv.get("segments", "auto")
     if segments != "auto" and (isinstance(segments, bool) or not isinstance(segments, int) or not 1 <= segments <= nodes):
-        r.fail("[solver] segments", f"must be \"auto\" or an integer in [1, nodes], got {segments!r}")
+        r.fail("[solver] segments", f'must be "auto" or an integer in [1, nodes], got {segments!r}')
     unroll = sv.get("unroll", 1)
     if isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 1:
         r.fail("[solver] unroll", f"must be a positive integer, got {unroll!r}")
@@ -330,7 +361,9 @@ SG_DEFAULTS = dict(
     base_angles=[-10.0, 10.0, 110.0, 130.0, 230.0, 250.0],
     platform_angles=[-50.0, 50.0, 70.0, 170.0, 190.0, 290.0],
 )
-TRISKELE_DEFAULTS = dict(actuator_radius=0.080, gamma=[-30.0, 210.0, 90.0], phi=[140.0, 20.0, -100.0], clamp_angles=[130.0, 10.0, -110.0])
+TRISKELE_DEFAULTS = dict(
+    actuator_radius=0.080, gamma=[-30.0, 210.0, 90.0], phi=[140.0, 20.0, -100.0], clamp_angles=[130.0, 10.0, -110.0]
+)
 
 
 def _rz(deg):
@@ -509,8 +542,15 @@ def _parallel_robot(r: _Reader, robot: str, name: str) -> Scene:
         base_R = np.stack([_planar_frame(a) for a in phi])
         if "attachment" in g:
             att = g["attachment"]
-            ok = isinstance(att, list) and len(att) == n and all(
-                isinstance(p, list) and len(p) == 2 and all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in p) for p in att
+            ok = (
+                isinstance(att, list)
+                and len(att) == n
+                and all(
+                    isinstance(p, list)
+                    and len(p) == 2
+                    and all(isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in p)
+                    for p in att
+                )
             )
             if not ok:
                 r.fail("[geometry] attachment", f"must be {n} pairs [x, y] of numbers (m, platform frame)")
@@ -528,13 +568,20 @@ def _parallel_robot(r: _Reader, robot: str, name: str) -> Scene:
         r.fail("[actuation] initial", f"leg lengths must be > 0, got {list(a0)}")
     _check_closure(r, legs, attach, a0, p_ref, R_ref, effects.planar)
     solver = make_solver(rod, legs.lengths(_f(a0)), **read_solver(r))
-    end = RigidPlatform(body=platform, attachment=_f(attach), clamp=_f(clamp), reference_position=_f(p_ref), reference_rotation=_f(R_ref), load=load)
-    return Scene(legs=legs, end=end, actuation=actuation, gravity=read_gravity(r), effects=effects, solver=solver, name=name, robot=robot)
+    end = RigidPlatform(
+        body=platform,
+        attachment=_f(attach),
+        clamp=_f(clamp),
+        reference_position=_f(p_ref),
+        reference_rotation=_f(R_ref),
+        load=load,
+    )
+    return Scene(
+        legs=legs, end=end, actuation=actuation, gravity=read_gravity(r), effects=effects, solver=solver, name=name, robot=robot
+    )
 
 
 _BUILDERS = {"rod": _rod_robot, "stewart_gough": _parallel_robot, "triskele": _parallel_robot}
-
-
 
 
 def _check_closure(r: _Reader, legs: Legs, attachment, a0, p_ref, R_ref, planar: bool):
@@ -557,7 +604,10 @@ def _check_closure(r: _Reader, legs: Legs, attachment, a0, p_ref, R_ref, planar:
         bad = dist >= L
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
-        r.fail("geometry", f"leg {i + 1} cannot reach the platform: its attachment is {dist[i]:.4g} m from its base{'' if planar else ' across the base axis'} but the rod is {L[i]:.4g} m long")
+        r.fail(
+            "geometry",
+            f"leg {i + 1} cannot reach the platform: its attachment is {dist[i]:.4g} m from its base{'' if planar else ' across the base axis'} but the rod is {L[i]:.4g} m long",
+        )
 
 
 def scene_path(path) -> Path:

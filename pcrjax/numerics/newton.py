@@ -135,8 +135,19 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
     n = x0.shape[0]
     false, zero = jnp.asarray(False), jnp.asarray(0)
     init = _State(
-        x=x0, r=jnp.zeros(n, x0.dtype), nrm=jnp.asarray(jnp.inf, x0.dtype), jac=jac0, need=jnp.asarray(need_jacobian), fresh=false,
-        dx=jnp.zeros(n, x0.dtype), lam=jnp.asarray(0.0, x0.dtype), it=zero, nj=zero, evals=zero, started=false, gave_up=false,
+        x=x0,
+        r=jnp.zeros(n, x0.dtype),
+        nrm=jnp.asarray(jnp.inf, x0.dtype),
+        jac=jac0,
+        need=jnp.asarray(need_jacobian),
+        fresh=false,
+        dx=jnp.zeros(n, x0.dtype),
+        lam=jnp.asarray(0.0, x0.dtype),
+        it=zero,
+        nj=zero,
+        evals=zero,
+        started=false,
+        gave_up=false,
         trial_finite=jnp.asarray(True),
     )
     lam_min = 0.5**settings.max_backtracks
@@ -192,8 +203,11 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
     result = jnp.where(
         st.nrm <= settings.tol,
         results.SUCCESSFUL,
-        jnp.where(~jnp.isfinite(st.nrm) | (st.gave_up & ~st.trial_finite), results.NONFINITE,
-                  jnp.where(st.gave_up, results.LINE_SEARCH_FAILED, results.MAX_ITERATIONS)),
+        jnp.where(
+            ~jnp.isfinite(st.nrm) | (st.gave_up & ~st.trial_finite),
+            results.NONFINITE,
+            jnp.where(st.gave_up, results.LINE_SEARCH_FAILED, results.MAX_ITERATIONS),
+        ),
     )
     return st.x, st.jac, Stats(iterations=st.it, residual=st.nrm, jacobians=st.nj, evaluations=st.evals, result=result)
 
@@ -273,7 +287,13 @@ def _implicit_jvp(f_conv, j_conv, primals, tangents):
 
 def accumulate(total: Stats, st: Stats) -> Stats:
     """Stats of two solves in sequence: counts add up, the residual and result are the later one's."""
-    return Stats(total.iterations + st.iterations, st.residual, total.jacobians + st.jacobians, total.evaluations + st.evaluations, st.result)
+    return Stats(
+        total.iterations + st.iterations,
+        st.residual,
+        total.jacobians + st.jacobians,
+        total.evaluations + st.evaluations,
+        st.result,
+    )
 
 
 def continuation(homotopy, homotopy_jac, n: int, size: int, dtype=jnp.float64):

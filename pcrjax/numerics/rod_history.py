@@ -78,7 +78,9 @@ def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, ds,
     static_eff = dataclasses.replace(effects, inertia=False)
     k = coefficients(rod, static_eff, jnp.zeros((), static_nodes.dtype), gravity)
     zero = RodHistory.zeros(static_nodes.shape[0] - 1, integrator, dtype=static_nodes.dtype)
-    _, _, stages = integrate(static_nodes[0], zero.nodes, k, static_eff, ds, integrator, stage_history=zero.stages, return_stages=True)
+    _, _, stages = integrate(
+        static_nodes[0], zero.nodes, k, static_eff, ds, integrator, stage_history=zero.stages, return_stages=True
+    )
 
     def with_velocities(a):
         return jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (6,), a.dtype)], axis=-1)

@@ -75,11 +75,18 @@ def _rate_and_length(rod, lengths, dt, alpha):
     return lam, jnp.max(lengths)
 
 
-def make_solver(rod, lengths, nodes, integrator, dt, alpha, duration, tol=1e-10, max_iter=50, segments="auto", unroll=1, continuation=10) -> Solver:
+def make_solver(
+    rod, lengths, nodes, integrator, dt, alpha, duration, tol=1e-10, max_iter=50, segments="auto", unroll=1, continuation=10
+) -> Solver:
     """Solver settings for rods ``rod`` (leaves with a leading leg axis) of free ``lengths`` (m);
     ``segments="auto"`` picks the multiple-shooting split from dt and alpha (the most demanding
     leg decides)."""
-    lam, L = (float(v) for v in _rate_and_length(rod, jnp.asarray(lengths, jnp.float64), jnp.asarray(dt, jnp.float64), jnp.asarray(alpha, jnp.float64)))
+    lam, L = (
+        float(v)
+        for v in _rate_and_length(
+            rod, jnp.asarray(lengths, jnp.float64), jnp.asarray(dt, jnp.float64), jnp.asarray(alpha, jnp.float64)
+        )
+    )
     refine = max(1, int(np.ceil(lam * L / nodes / REFINED_SPACING)))
     auto = segments == "auto"
     if auto:

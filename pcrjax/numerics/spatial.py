@@ -44,7 +44,9 @@ def stage_histories(history):
     return jnp.stack([hm, hm, history[1:]], axis=1)
 
 
-def integrate(y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1, stage_history=None, return_stages=False):
+def integrate(
+    y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1, stage_history=None, return_stages=False
+):
     r"""Integrate from node 0 to node N.
 
     **Arguments:**

@@ -80,7 +80,9 @@ def _problem(scene, state: StepState, t, co):
     F, M = scene.end.load(t)
     cfg = scene.end.step_config(state.memory, F, M, scene.end.weight(scene.effects, scene.gravity), co)
     lay = assembly.layout(scene, True)
-    prob = assembly.Problem(scene, True, a, adot, scene.gravity, state.history, assembly.leg_rotations(lay, state.nodes), co.c0, cfg)
+    prob = assembly.Problem(
+        scene, True, a, adot, scene.gravity, state.history, assembly.leg_rotations(lay, state.nodes), co.c0, cfg
+    )
     return prob, a, adot
 
 
@@ -116,7 +118,9 @@ def step(scene, state: StepState, t):
         has_jac=jnp.asarray(True),
     )
     rods = jax.vmap(lambda k, nd, zz, ds: rod_physics.energy(k, scene.effects, nd, zz, ds))(prob.k, nodes, z, prob.ds)
-    out = StepOutput(position=p, rotation=R, actuators=a, positions=nodes[:, :: s.refine, 0:3], energy=jnp.sum(rods) + end_energy, stats=stats)
+    out = StepOutput(
+        position=p, rotation=R, actuators=a, positions=nodes[:, :: s.refine, 0:3], energy=jnp.sum(rods) + end_energy, stats=stats
+    )
     return new_state, out
 
 
@@ -124,5 +128,7 @@ def rest_energy(scene, state: StepState, static: StaticSolution):
     """Total energy of the initial rest state (rods' elastic energy, weights' and loads' potential)."""
     co = _coefficients(scene)
     prob, _, _ = _problem(scene, state, jnp.zeros(()), co)
-    rods = jax.vmap(lambda k, nd, zz, ds: rod_physics.energy(k, scene.effects, nd, zz, ds))(prob.k, state.nodes, state.z_prev, prob.ds)
+    rods = jax.vmap(lambda k, nd, zz, ds: rod_physics.energy(k, scene.effects, nd, zz, ds))(
+        prob.k, state.nodes, state.z_prev, prob.ds
+    )
     return jnp.sum(rods) + scene.end.rest_energy(prob.cfg, state.memory, static.nodes[:, -1])

@@ -131,7 +131,11 @@ class RigidPlatform(eqx.Module):
     plots = ("platform", "platform_path.png", "legs.png")
 
     def describe(self) -> dict:
-        return {"kind": "rigid platform", "mass_kg": float(self.body.mass), "inertia_kg_m2": [float(v) for v in self.body.inertia]}
+        return {
+            "kind": "rigid platform",
+            "mass_kg": float(self.body.mass),
+            "inertia_kg_m2": [float(v) for v in self.body.inertia],
+        }
 
     def pose_size(self, effects) -> int:
         return 3 if effects.planar else 6
@@ -176,7 +180,15 @@ class RigidPlatform(eqx.Module):
 
     def step_config(self, memory, F, M, weight, co):
         return PlatformConfig(
-            attachment=self.attachment, clamp=self.clamp, F=F, M=M, weight=weight, p_prev=memory.p1, R_prev=memory.R1, motion=memory, co=co
+            attachment=self.attachment,
+            clamp=self.clamp,
+            F=F,
+            M=M,
+            weight=weight,
+            p_prev=memory.p1,
+            R_prev=memory.R1,
+            motion=memory,
+            co=co,
         )
 
     def pose(self, cfg, xp, sc, planar):
@@ -193,7 +205,9 @@ class RigidPlatform(eqx.Module):
 
         def constraint(tip, r_i, Rc):
             target = matmul(R, Rc)
-            return jnp.concatenate([(p + matvec(R, r_i) - tip[0:3]) / sc.length, skew_vee(transpose_matmul(target, tip[3:12].reshape(3, 3)))])
+            return jnp.concatenate(
+                [(p + matvec(R, r_i) - tip[0:3]) / sc.length, skew_vee(transpose_matmul(target, tip[3:12].reshape(3, 3)))]
+            )
 
         return bal, jax.vmap(constraint)(tips, cfg.attachment, cfg.clamp)
 

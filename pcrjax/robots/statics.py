@@ -35,7 +35,9 @@ def solve_static(scene, t=0.0) -> StaticSolution:
 
     def problem(lam):
         cfg = end.static_config(legs, a, F, M, weight, lam)
-        return assembly.Problem(scene, False, a, jnp.zeros_like(a), lam * scene.gravity, hist, jnp.zeros((n, 0, 3, 3)), jnp.zeros(()), cfg)
+        return assembly.Problem(
+            scene, False, a, jnp.zeros_like(a), lam * scene.gravity, hist, jnp.zeros((n, 0, 3, 3)), jnp.zeros(()), cfg
+        )
 
     prob1 = problem(jnp.asarray(1.0))
     pre, fallback_stages = end.static_plan(s)
@@ -58,7 +60,9 @@ def solve_static(scene, t=0.0) -> StaticSolution:
         x0, need = jax.lax.stop_gradient(x0), False
     fallback = None
     if fallback_stages:
-        fallback = newton.continuation(lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x), fallback_stages, prob1.size)
+        fallback = newton.continuation(
+            lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x), fallback_stages, prob1.size
+        )
     x, _, stats = newton.solve(prob1.residual, x0, jac, prob1.jac_fn(), s.newton, need, fallback)
     stats = newton.accumulate(total, stats)
     xp, xl = prob1.split(x)
