@@ -95,3 +95,18 @@ def cantilever_mode1(s, L):
     sig = (math.cosh(EB_BETA1) + math.cos(EB_BETA1)) / (math.sinh(EB_BETA1) + math.sin(EB_BETA1))
     phi = lambda x: np.cosh(b * x) - np.cos(b * x) - sig * (np.sinh(b * x) - np.sin(b * x))  # noqa: E731
     return phi(s) / phi(L)
+
+
+def tip_mass_frequency_hz(L, E, r, rho, tip_mass):
+    """First bending frequency (Hz) of an Euler-Bernoulli cantilever carrying a point mass at its
+    tip: the smallest root x = beta L of 1 + cos x cosh x + mu x (cos x sinh x - sin x cosh x) = 0,
+    mu = tip_mass / (rho A L), omega = x^2 sqrt(EI / (rho A L^4))."""
+    A = math.pi * r**2
+    EI = E * math.pi * r**4 / 4
+    mu = tip_mass / (rho * A * L)
+
+    def char(x):
+        return 1 + math.cos(x) * math.cosh(x) + mu * x * (math.cos(x) * math.sinh(x) - math.sin(x) * math.cosh(x))
+
+    x = brentq(char, 0.5, 1.8751)
+    return x**2 * math.sqrt(EI / (rho * A * L**4)) / (2 * math.pi)
