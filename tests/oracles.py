@@ -108,5 +108,5 @@ def tip_mass_frequency_hz(L, E, r, rho, tip_mass):
     def char(x):
         return 1 + math.cos(x) * math.cosh(x) + mu * x * (math.cos(x) * math.sinh(x) - math.sin(x) * math.cosh(x))
 
-    x = brentq(char, 0.5, 1.8751)
+    x = brentq(char, 0.5, 1.9)
     return x**2 * math.sqrt(EI / (rho * A * L**4)) / (2 * math.pi)
