@@ -21,14 +21,15 @@ def _root(params, fallback=None):
     continuation in q."""
     p, q = params[0], params[1]
     fn = lambda x: x**3 + p * x - q  # noqa: E731
-    jac_fn = lambda f, x: jax.jacfwd(f)(x)  # noqa: E731
+    jac_fn = jax.jacfwd(fn)
     guess = jnp.full(1, 4.0 if fallback is None else jnp.nan)
+    stages, homotopy = newton.plain(guess), None
     if fallback == "restart":
-        fallback = (None, None, jnp.ones(1), jnp.full((1, 1), 0.5), jnp.zeros(1, bool))
+        stages = newton.with_restart(guess, jnp.full(1, 0.5))
     elif fallback == "continuation":
-        homotopy = lambda x, s: x**3 + p * x - s * q  # noqa: E731
-        fallback = newton.continuation(homotopy, lambda x, s: jax.jacfwd(homotopy)(x, s), 4, 1)
-    x, _, stats = newton.solve(fn, guess, newton.Jacobian.empty(1), jac_fn, SETTINGS, True, fallback)
+        h = lambda x, s: x**3 + p * x - s * q  # noqa: E731
+        stages, homotopy = newton.with_continuation(guess, 4), (h, jax.jacfwd(h))
+    x, _, stats = newton.solve(fn, jac_fn, newton.Jacobian.empty(1), SETTINGS, stages, homotopy)
     return x[0], stats
 
 

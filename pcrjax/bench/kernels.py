@@ -45,26 +45,21 @@ def loop_body_kernels(hlo: str) -> int:
 
 
 def node_step_kernels(scene) -> int:
-    """Kernels per node step of one leg of ``scene`` in a dynamic step (the spatial scan's body)."""
+    """Kernels per node step of the legs' integration in a dynamic step of ``scene`` (the spatial
+    scan's loop body; one scan serves every leg)."""
     from ..numerics import bdf_alpha
-    from ..physics.rod import coefficients
     from ..robots import assembly
 
     s = scene.solver
-    lay = assembly.layout(scene, True)
-    leg = jax.tree.map(lambda a: a[0], scene.legs)
     co = bdf_alpha.coefficients(s.dt, s.alpha)
-    k = coefficients(leg.rod, scene.effects, co.c0, scene.gravity)
-    sc = assembly.scales(scene, co.c0)
-    hist = jax.tree.map(lambda a: a[0], assembly.zero_histories(scene))
-    y0 = scene.legs.base_states(scene.actuator_values(jnp.zeros(())), None, True)[0]
-    R_ref = jnp.broadcast_to(jnp.eye(3), (lay.segments - 1, 3, 3))
-    ds = scene.legs.lengths(scene.actuator_values(jnp.zeros(())))[0] / s.grid_nodes
+    lay = assembly.layout(scene, True)
+    n = scene.legs.count
+    a = scene.actuator_values(jnp.zeros(()))
+    R_ref = jnp.broadcast_to(jnp.eye(3), (n, lay.segments - 1, 3, 3))
 
-    from ..numerics.shooting import shoot
+    def f(xl):
+        prob = assembly.Problem(scene, True, a, jnp.zeros_like(a), scene.gravity, assembly.zero_histories(scene), R_ref, co.c0, None)
+        return prob.legs(xl)[1]
 
-    def f(x):
-        return shoot(lay, x, y0, R_ref, hist, k, scene.effects, ds, s.integrator, sc, s.unroll)[0][-1]
-
-    hlo = jax.jit(f).lower(jnp.zeros(lay.size)).compile().as_text()
+    hlo = jax.jit(f).lower(jnp.zeros((n, lay.size))).compile().as_text()
     return loop_body_kernels(hlo)

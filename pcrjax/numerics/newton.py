@@ -102,10 +102,65 @@ def _norm(r):
     return jnp.max(jnp.abs(r))
 
 
-class _State(eqx.Module):
-    """One pass of `newton`'s loop: iterate, its residual and norm, the Jacobian in use, and the
-    current direction with its line-search step."""
+class Stages(eqx.Module):
+    """Newton solves run in sequence inside one loop: stage k solves ``homotopy(x, s[k]) = 0`` from
+    ``starts[k]``, or, where ``chain[k]``, from the previous stage's result; with a fresh Jacobian
+    where ``fresh[k]`` (else the previous stage's, Broyden-updated); stages marked ``fallback``
+    run only while the solve is not done (converged at s = 1). The last stage has s = 1.
 
+    One loop, whatever the stages: the residual and the Jacobian are compiled once, not once per
+    stage. Build them with `plain`, `with_restart`, `with_continuation` or `continuation_first`.
+    """
+
+    s: jnp.ndarray  # (K,)
+    starts: jnp.ndarray  # (K, n)
+    chain: jnp.ndarray  # (K,) bool
+    fresh: jnp.ndarray  # (K,) bool
+    fallback: jnp.ndarray  # (K,) bool
+
+
+def _stages(rows, x0):
+    s, starts, chain, fresh, fallback = zip(*rows, strict=True)
+    stack = lambda v, dt: jnp.stack([jnp.asarray(a, dt) for a in v])  # noqa: E731
+    return Stages(
+        stack(s, x0.dtype),
+        jnp.stack([jnp.asarray(a, x0.dtype) for a in starts]),
+        stack(chain, bool),
+        stack(fresh, bool),
+        stack(fallback, bool),
+    )
+
+
+def plain(x0, need_jacobian=True) -> Stages:
+    """One Newton solve from ``x0``."""
+    return _stages([(1.0, x0, False, need_jacobian, False)], x0)
+
+
+def with_restart(x0, x_restart, need_jacobian=True) -> Stages:
+    """A solve from ``x0``, and if it fails, again from ``x_restart`` with a fresh Jacobian (a time
+    step: from the extrapolated guess, then from the previous step's solution)."""
+    return _stages([(1.0, x0, False, need_jacobian, False), (1.0, x_restart, False, True, True)], x0)
+
+
+def with_continuation(x0, n: int, need_jacobian=True) -> Stages:
+    """A solve from ``x0``, and if it fails, load continuation s = 1/n .. 1 from the root x = 0 at
+    s = 0, each stage from the last with a fresh Jacobian."""
+    zero = jnp.zeros_like(x0)
+    rows = [(1.0, x0, False, need_jacobian, False)] + [((k + 1) / n, zero, k > 0, True, True) for k in range(n)]
+    return _stages(rows, x0)
+
+
+def continuation_first(x0, n: int) -> Stages:
+    """Continuation s = 1/n .. 1 from ``x0`` (the root at s = 0), each stage from the last, with a
+    fresh Jacobian at the first stage only (Broyden-updated after)."""
+    return _stages([((k + 1) / n, x0, k > 0, k == 0, False) for k in range(n)], x0)
+
+
+class _State(eqx.Module):
+    """One pass of `_staged_newton`'s loop: the stage, the iterate, its residual and norm, the
+    Jacobian in use, and the current direction with its line-search step."""
+
+    k: jnp.ndarray  # stage
     x: jnp.ndarray
     r: jnp.ndarray
     nrm: jnp.ndarray
@@ -114,62 +169,55 @@ class _State(eqx.Module):
     fresh: jnp.ndarray  # the Jacobian was evaluated at the current iterate
     dx: jnp.ndarray
     lam: jnp.ndarray
-    it: jnp.ndarray
+    it: jnp.ndarray  # directions of this stage
+    total_it: jnp.ndarray
     nj: jnp.ndarray
     evals: jnp.ndarray
-    started: jnp.ndarray  # fn(x0) has been evaluated
+    started: jnp.ndarray  # fn(x) has been evaluated at this stage's start
     gave_up: jnp.ndarray  # the last direction's line search failed
     trial_finite: jnp.ndarray  # the last trial residual was finite
+    finished: jnp.ndarray
 
 
-def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True):
-    """Solve ``fn(x) = 0`` from ``x0``; returns ``(x, Jacobian, Stats)``. Never raises.
+def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages):
+    """Solve ``fn(x, s) = 0`` stage after stage (`Stages`); returns ``(x, Jacobian, Stats)``. Never raises.
 
     One `while_loop` whose every pass evaluates ``fn`` once (so the residual is traced once):
     a pass either takes a new Newton direction (full step first) or halves the step of the
-    current one (Armijo backtracking). ``jac0`` is reused (chord iterations) unless
-    ``need_jacobian``; the Jacobian is refreshed when the contraction is worse than
-    ``refresh_ratio`` or a stale direction fails its line search. A fresh direction that fails
-    is taken with the smallest step (damped Newton), so the iteration always moves.
+    current one (Armijo backtracking). The Jacobian is reused (chord iterations) unless a stage
+    asks for a fresh one; it is refreshed when the contraction is worse than ``refresh_ratio``
+    or a stale direction fails its line search. A fresh direction that fails is taken with the
+    smallest step (damped Newton), so the iteration always moves. A stage ends when it meets the
+    tolerance, reaches ``max_iter`` directions or its residual is not finite.
     """
+    x0 = stages.starts[0]
     n = x0.shape[0]
+    K = stages.s.shape[0]
     false, zero = jnp.asarray(False), jnp.asarray(0)
+    inf = jnp.asarray(jnp.inf, x0.dtype)
     init = _State(
-        x=x0,
-        r=jnp.zeros(n, x0.dtype),
-        nrm=jnp.asarray(jnp.inf, x0.dtype),
-        jac=jac0,
-        need=jnp.asarray(need_jacobian),
-        fresh=false,
-        dx=jnp.zeros(n, x0.dtype),
-        lam=jnp.asarray(0.0, x0.dtype),
-        it=zero,
-        nj=zero,
-        evals=zero,
-        started=false,
-        gave_up=false,
-        trial_finite=jnp.asarray(True),
-    )
+        k=zero, x=x0, r=jnp.zeros(n, x0.dtype), nrm=inf, jac=jac0, need=stages.fresh[0], fresh=false, dx=jnp.zeros(n, x0.dtype),
+        lam=jnp.asarray(0.0, x0.dtype), it=zero, total_it=zero, nj=zero, evals=zero, started=false, gave_up=false,
+        trial_finite=jnp.asarray(True), finished=false,
+    )  # fmt: skip
     lam_min = 0.5**settings.max_backtracks
-
-    def cond(st: _State):
-        return (~st.started) | ((st.nrm > settings.tol) & (st.it < settings.max_iter) & jnp.isfinite(st.nrm))
 
     def body(st: _State):
         x, r, nrm, jac, need, fresh, dx, lam, started = st.x, st.r, st.nrm, st.jac, st.need, st.fresh, st.dx, st.lam, st.started
+        s = stages.s[st.k]
         new_dir = started & (lam == 1.0)
         refresh = new_dir & need
         jac, fresh, nj = jax.lax.cond(
             refresh,
-            lambda: (Jacobian.factor(jac_fn(fn, x)), jnp.asarray(True), st.nj + 1),
+            lambda: (Jacobian.factor(jac_fn(x, s)), jnp.asarray(True), st.nj + 1),
             lambda: (jac, fresh, st.nj),
         )
         dx = jnp.where(new_dir, -jac.solve(r), dx)
-        r_t = fn(x + lam * dx)
+        r_t = fn(x + lam * dx, s)
         nrm_t = _norm(r_t)
         finite = jnp.isfinite(nrm_t)
         ok = (nrm_t <= (1.0 - 1e-4 * lam) * nrm) & finite
-        ok = ok | ~started  # the first pass only evaluates fn(x0)
+        ok = ok | ~started  # the first pass of a stage only evaluates fn at its start
         give_up = ~ok & (lam <= lam_min)
         forced = give_up & fresh & finite
         move = ok | forced
@@ -182,24 +230,37 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
         # Next pass: after a move or a failed search, a new direction (lam = 1); else backtrack.
         need_new = jnp.where(move & started, (nrm_t > settings.refresh_ratio * nrm) | forced, need) | give_up
         searched = (move | give_up) & started
+        x_new = jnp.where(move, x + lam * dx, x)
+        nrm_new = jnp.where(move, nrm_t, nrm)
+        it_new = st.it + jnp.where(searched, 1, 0)
+        # The stage ends when it converges, runs out of directions or overflows; the solve ends
+        # after the last stage, or when done and only fallback stages remain.
+        ended = ~((nrm_new > settings.tol) & (it_new < settings.max_iter) & jnp.isfinite(nrm_new))
+        done = (nrm_new <= settings.tol) & (s == 1.0)
+        k_next = jnp.minimum(st.k + 1, K - 1)
+        finished = ended & ((st.k == K - 1) | (done & stages.fallback[k_next]))
+        advance = ended & ~finished
         return _State(
-            x=jnp.where(move, x + lam * dx, x),
+            k=jnp.where(advance, k_next, st.k),
+            x=jnp.where(advance & ~stages.chain[k_next], stages.starts[k_next], x_new),
             r=jnp.where(move, r_t, r),
-            nrm=jnp.where(move, nrm_t, nrm),
+            nrm=jnp.where(advance, jnp.inf, nrm_new),
             jac=jac,
-            need=need_new,
+            need=jnp.where(advance, stages.fresh[k_next] | need_new, need_new),
             fresh=fresh & ~(move & started),
             dx=dx,
-            lam=jnp.where(move | give_up, 1.0, 0.5 * lam),
-            it=st.it + jnp.where(searched, 1, 0),
+            lam=jnp.where(advance, 0.0, jnp.where(move | give_up, 1.0, 0.5 * lam)),
+            it=jnp.where(advance, 0, it_new),
+            total_it=st.total_it + jnp.where(searched, 1, 0),
             nj=nj,
             evals=st.evals + 1,
-            started=jnp.asarray(True),
-            gave_up=jnp.where(searched, give_up, st.gave_up),
+            started=~advance,
+            gave_up=jnp.where(advance, False, jnp.where(searched, give_up, st.gave_up)),
             trial_finite=finite,
+            finished=finished,
         )
 
-    st = jax.lax.while_loop(cond, body, init)
+    st = jax.lax.while_loop(lambda st: ~st.finished, body, init)
     result = jnp.where(
         st.nrm <= settings.tol,
         results.SUCCESSFUL,
@@ -209,62 +270,40 @@ def newton(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobi
             jnp.where(st.gave_up, results.LINE_SEARCH_FAILED, results.MAX_ITERATIONS),
         ),
     )
-    return st.x, st.jac, Stats(iterations=st.it, residual=st.nrm, jacobians=st.nj, evaluations=st.evals, result=result)
+    return st.x, st.jac, Stats(iterations=st.total_it, residual=st.nrm, jacobians=st.nj, evaluations=st.evals, result=result)
 
 
-def solve(fn, x0, jac0: Jacobian, jac_fn, settings: NewtonSettings, need_jacobian=True, fallback=None):
+def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, homotopy=None):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
-    ``jac_fn(f, x)`` gives the exact Jacobian of ``f`` at ``x``; it serves the forward Newton and,
+    ``jac_fn(x)`` gives the exact Jacobian of ``fn`` at ``x``; it serves the forward Newton and,
     at the root, the tangent solve of the implicit function theorem: ``dx = -J^{-1} (df/dp) dp``
     for every value ``p`` that ``fn`` closes over (`_implicit`). A ``jac_fn`` may exploit the
     structure of ``fn`` (the robots' leg-by-leg Jacobian). `jax.lax.custom_root` would pass the
     tangent solve only the linearised function, whose dense Jacobian costs one forward pass per
     unknown, and trace that solve even where nothing is differentiated.
 
-    ``fn`` and ``jac_fn(fn, .)`` are traced once each (`jax.closure_convert`); the Newton loop
-    and the tangent rule evaluate those traces. The forward solve sees its inputs through
+    ``stages`` (`Stages`) say where Newton starts and what it tries next; ``homotopy``, if given,
+    is ``(h, h_jac)`` with ``h(x, 1) == fn(x)``, solved at each stage's ``s`` (without it every
+    stage solves ``fn``). The functions are traced once each (`jax.closure_convert`); the Newton
+    loop and the tangent rule evaluate those traces. The forward solve sees its inputs through
     ``stop_gradient``: no tangent flows through its iterations.
-
-    ``fallback``, if given, is ``(homotopy, homotopy_jac, s, starts, chain)``: stages tried in order
-    only while the solve has not converged (traced once, run only if needed). Stage k solves
-    ``homotopy(x, s[k]) = 0`` (with ``homotopy(x, 1) == fn(x)``; None: ``fn`` itself, with
-    ``jac_fn``) from ``starts[k]``, or, where ``chain[k]``, from stage k-1's result, with a fresh
-    Jacobian ``homotopy_jac(x, s[k])``. Load continuation and a restart from the previous time
-    step are both written this way.
     """
+    x0 = stages.starts[0]
     f_conv, f_consts = jax.closure_convert(fn, x0)
-    j_conv, j_consts = jax.closure_convert(lambda x: jac_fn(fn, x), x0)
+    j_conv, j_consts = jax.closure_convert(jac_fn, x0)
     fixed = lambda consts: [jax.lax.stop_gradient(c) for c in consts]  # noqa: E731
-    f_fc, j_fc = fixed(f_consts), fixed(j_consts)
-    f = lambda x: f_conv(x, *f_fc)  # noqa: E731
-    jac_f = lambda _f, x: j_conv(x, *j_fc)  # noqa: E731
-    x0, jac0 = jax.lax.stop_gradient((x0, jac0))
-
-    x, jac, stats = newton(f, x0, jac0, jac_f, settings, need_jacobian)
-    if fallback is not None:
-        homotopy, homotopy_jac, svals, starts, chain = fallback
-        if homotopy is None:
-            stage_fn, stage_jac = lambda _s: f, lambda _s: jac_f
-        else:
-            h_conv, h_consts = jax.closure_convert(homotopy, x0, svals[0])
-            hj_conv, hj_consts = jax.closure_convert(homotopy_jac, x0, svals[0])
-            h_fc, hj_fc = fixed(h_consts), fixed(hj_consts)
-            stage_fn = lambda s: lambda z: h_conv(z, s, *h_fc)  # noqa: E731
-            stage_jac = lambda s: lambda _f, z: hj_conv(z, s, *hj_fc)  # noqa: E731
-
-        def stage(carry, inp):
-            x, jac, done, total = carry
-            s, start, from_prev = inp
-
-            def run():
-                x2, jac2, st = newton(stage_fn(s), jnp.where(from_prev, x, start), jac, stage_jac(s), settings, True)
-                return x2, jac2, (s == 1.0) & (st.residual <= settings.tol), accumulate(total, st)
-
-            return jax.lax.cond(done, lambda: (x, jac, done, total), run), None
-
-        done = stats.residual <= settings.tol
-        (x, jac, _, stats), _ = jax.lax.scan(stage, (x, jac, done, stats), jax.lax.stop_gradient((svals, starts, chain)))
+    if homotopy is None:
+        f_fc, j_fc = fixed(f_consts), fixed(j_consts)
+        g = lambda x, s: f_conv(x, *f_fc)  # noqa: E731
+        g_jac = lambda x, s: j_conv(x, *j_fc)  # noqa: E731
+    else:
+        h_conv, h_consts = jax.closure_convert(homotopy[0], x0, stages.s[0])
+        hj_conv, hj_consts = jax.closure_convert(homotopy[1], x0, stages.s[0])
+        h_fc, hj_fc = fixed(h_consts), fixed(hj_consts)
+        g = lambda x, s: h_conv(x, s, *h_fc)  # noqa: E731
+        g_jac = lambda x, s: hj_conv(x, s, *hj_fc)  # noqa: E731
+    x, jac, stats = _staged_newton(g, g_jac, jax.lax.stop_gradient(jac0), settings, jax.lax.stop_gradient(stages))
     return _implicit(f_conv, j_conv, x, f_consts, j_consts), jac, stats
 
 
@@ -283,27 +322,3 @@ def _implicit_jvp(f_conv, j_conv, primals, tangents):
     J = Jacobian.factor(j_conv(x, *j_consts))
     _, rhs = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
     return x, -J.solve(rhs)
-
-
-def accumulate(total: Stats, st: Stats) -> Stats:
-    """Stats of two solves in sequence: counts add up, the residual and result are the later one's."""
-    return Stats(
-        total.iterations + st.iterations,
-        st.residual,
-        total.jacobians + st.jacobians,
-        total.evaluations + st.evaluations,
-        st.result,
-    )
-
-
-def continuation(homotopy, homotopy_jac, n: int, size: int, dtype=jnp.float64):
-    """Fallback stages for load continuation: s = 1/n .. 1, starting from the root x = 0 at s = 0."""
-    svals = jnp.linspace(1.0 / n, 1.0, n, dtype=dtype)
-    chain = jnp.arange(n) > 0
-    return homotopy, homotopy_jac, svals, jnp.zeros((n, size), dtype), chain
-
-
-def restart(x):
-    """Fallback stage for a time step: Newton again from ``x`` (the previous step's solution)
-    with a fresh Jacobian."""
-    return None, None, jnp.ones(1, x.dtype), jax.lax.stop_gradient(x)[None], jnp.zeros(1, bool)

@@ -68,28 +68,33 @@ def advance(co: bdf_alpha.Coefficients, hist: RodHistory, z_nodes, z_stages, z_p
 
 
 def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, ds, integrator):
-    """A rod that has rested forever in the static solution ``static_nodes`` (N+1, 18).
+    """Legs that have rested forever in the static solution ``static_nodes`` (n, N+1, 18) (``rod``
+    leaves and ``ds`` per leg).
 
-    Returns ``(nodes (N+1, 24), z (N+1, 12), history)``. At rest the dynamic equations reduce to
-    the static ones, so the stage states are the static ones with zero velocities. Strains follow
-    from the loads with any history satisfying $h = -c_0 z$; z is computed with the damping-free
-    law (identical at rest), then the rest history.
+    Returns ``(nodes (n, N+1, 24), z (n, N+1, 12), history)``. At rest the dynamic equations
+    reduce to the static ones, so the stage states are the static ones with zero velocities.
+    Strains follow from the loads with any history satisfying $h = -c_0 z$; z is computed with the
+    damping-free law (identical at rest), then the rest history.
     """
+    n, n_nodes = static_nodes.shape[0], static_nodes.shape[1]
     static_eff = dataclasses.replace(effects, inertia=False)
-    k = coefficients(rod, static_eff, jnp.zeros((), static_nodes.dtype), gravity)
-    zero = RodHistory.zeros(static_nodes.shape[0] - 1, integrator, dtype=static_nodes.dtype)
-    _, _, stages = integrate(
-        static_nodes[0], zero.nodes, k, static_eff, ds, integrator, stage_history=zero.stages, return_stages=True
-    )
+    k = jax.vmap(lambda r: coefficients(r, static_eff, jnp.zeros((), static_nodes.dtype), gravity))(rod)
+    zero = jax.vmap(lambda _: RodHistory.zeros(n_nodes - 1, integrator, dtype=static_nodes.dtype))(jnp.arange(n))
+    _, _, stages = integrate(static_nodes[:, 0], zero.nodes, zero.stages, k, static_eff, ds, integrator, return_stages=True)
 
     def with_velocities(a):
         return jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (6,), a.dtype)], axis=-1)
 
     nodes, stages = with_velocities(static_nodes), with_velocities(stages)
-    k_rest = coefficients(rod, dataclasses.replace(effects, damping=False), co.c0, gravity)
-    z_of = jax.vmap(lambda y: kinematic_state(y, jnp.zeros(12, y.dtype), k_rest, effects))
-    z = z_of(nodes)
-    z_st = z_of(stages.reshape(-1, nodes.shape[1])).reshape(stages.shape[:2] + (12,))
+    k_rest = jax.vmap(lambda r: coefficients(r, dataclasses.replace(effects, damping=False), co.c0, gravity))(rod)
+
+    def z_of(kk, ys):  # one leg's points (..., 24)
+        flat = ys.reshape(-1, ys.shape[-1])
+        z = jax.vmap(lambda y: kinematic_state(y, jnp.zeros(12, y.dtype), kk, effects))(flat)
+        return z.reshape(ys.shape[:-1] + (12,))
+
+    z = jax.vmap(z_of)(k_rest, nodes)
+    z_st = jax.vmap(z_of)(k_rest, stages)
     return nodes, z, rest(co, z, z_st)
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..physics.rod import DYNAMIC_DIM, STATIC_DIM
 from ..physics.rotations import cayley, cayley_inverse, matmul, skew_vee, transpose_matmul
-from .spatial import integrate
+from .spatial import integrate, integrate_tangents
 
 SEGMENT_CONDITIONING = 6.0  # target lambda * segment length (error growth e^6 = 400)
 
@@ -125,22 +125,59 @@ def junction_residuals(layout: Layout, arrivals, restarts, sc: Scales):
     return jax.vmap(one)(arrivals, restarts).reshape(-1)
 
 
-def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1, return_stages=False):
-    """Integrate the rod for unknowns ``x``; returns (nodes, junction residuals[, stage states]).
+def _starts(base_state, x, sc: Scales):
+    """(n, dim) start states: the base states with each leg's scaled base wrench x[:, 0:6]."""
+    return base_state.at[:, 12:15].set(x[:, 0:3] * sc.force).at[:, 15:18].set(x[:, 3:6] * sc.moment)
 
-    ``base_state`` is the state at s = 0 with zero wrench; x[0:6] sets the scaled base wrench.
-    ``history`` is a `RodHistory` (nodes and RK4 stage points).
+
+def _restarts(layout: Layout, x, R_ref, sc: Scales):
+    return jax.vmap(lambda xi, Ri: restart_states(layout, xi, Ri, sc))(x, R_ref)
+
+
+def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1, return_stages=False):
+    """Integrate every leg for unknowns ``x`` (n, size); returns (nodes (n, N+1, dim), junction
+    residuals (n, (M-1) d)[, stage states]).
+
+    ``base_state`` (n, dim): the states at s = 0 with zero wrench; x[:, 0:6] sets the scaled base
+    wrenches. ``R_ref`` (n, M-1, 3, 3); ``history``: a `RodHistory` per leg; ``k``, ``ds`` per leg.
     """
-    y0 = base_state.at[12:15].set(x[0:3] * sc.force).at[15:18].set(x[3:6] * sc.moment)
-    kw = dict(unroll=unroll, stage_history=history.stages, return_stages=return_stages)
+    y0 = _starts(base_state, x, sc)
+    kw = dict(unroll=unroll, return_stages=return_stages)
     if layout.segments == 1:
-        out = integrate(y0, history.nodes, k, effects, ds, integrator, **kw)
-        junctions = jnp.zeros((0,), x.dtype)
+        out = integrate(y0, history.nodes, history.stages, k, effects, ds, integrator, **kw)
+        junctions = jnp.zeros((x.shape[0], 0), x.dtype)
     else:
-        restarts = restart_states(layout, x, R_ref, sc)
-        out = integrate(y0, history.nodes, k, effects, ds, integrator, layout.starts, restarts, **kw)
-        junctions = junction_residuals(layout, out[1], restarts, sc)
+        restarts = _restarts(layout, x, R_ref, sc)
+        out = integrate(y0, history.nodes, history.stages, k, effects, ds, integrator, layout.starts, restarts, **kw)
+        junctions = jax.vmap(lambda a, r: junction_residuals(layout, a, r, sc))(out[1], restarts)
     return (out[0], junctions) + ((out[2],) if return_stages else ())
+
+
+def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1):
+    """Directional derivatives (n, C, rows) of each leg's [junction residuals, tip state (18)]
+    along the C rows of ``seeds`` (C, size), by forward sensitivities integrated with the rods
+    (`integrate_tangents`)."""
+
+    def lin(fn, *args):  # fn's value at x and its derivatives along the seeds, per leg
+        def one(x_i, *a):
+            return jax.vmap(lambda t: jax.jvp(lambda z: fn(z, *a), (x_i,), (t,)), out_axes=(None, 0))(seeds)
+
+        return jax.vmap(one)(x, *args)
+
+    y0, Y0 = lin(lambda z, b: _starts(b[None], z[None], sc)[0], base_state)
+    hist = (history.nodes, history.stages)
+    if layout.segments == 1:
+        _, Y_last, _, _ = integrate_tangents(y0, Y0, *hist, k, effects, ds, integrator, unroll=unroll)
+        return Y_last[..., :18]
+    restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
+    RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
+    _, Y_last, arr, arr_t = integrate_tangents(y0, Y0, *hist, k, effects, ds, integrator, layout.starts, restarts, RT, unroll)
+
+    def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)
+        jvp = lambda at, rt: jax.jvp(lambda aa, rr: junction_residuals(layout, aa, rr, sc), (a, r), (at, rt))[1]  # noqa: E731
+        return jax.vmap(jvp)(jnp.swapaxes(a_t, 0, 1), jnp.swapaxes(r_t, 0, 1))
+
+    return jnp.concatenate([jax.vmap(junction_tangents)(arr, arr_t, restarts, RT), Y_last[..., :18]], axis=2)
 
 
 def unknowns_from_nodes(layout: Layout, nodes, R_ref, sc: Scales):

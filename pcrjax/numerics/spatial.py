@@ -10,9 +10,12 @@ within 1e-4 at N = 40. The remaining error is $O(c_0\,ds^4)$, so very small time
 more nodes (N growing like $\delta t^{-1/4}$); `rod_history.py` keeps the previous step's value
 exactly at every stage point, so that this error multiplies a velocity, not $c_0$.
 
-The scan supports multiple shooting: at the first node of each segment the carried state is replaced by that
-segment's unknown start state, and the state arriving there is returned so that the caller can
-form continuity residuals.
+One scan integrates every leg of a robot at once: the carried state has a leading leg axis and
+the right-hand side is mapped over it inside the loop body, so the loop is traced once (mapping a
+whole `lax.scan` over legs traces and batches its body several times) and each kernel of a node
+step serves all legs. The scan supports multiple shooting: at the first node of each segment the
+carried state is replaced by that segment's unknown start state, and the state arriving there is
+returned so that the caller can form continuity residuals.
 """
 
 from __future__ import annotations
@@ -37,70 +40,102 @@ def midpoints(history):
     return jnp.concatenate([first[None], inner, last[None]])
 
 
-def stage_histories(history):
-    """Histories at RK4's stage points 2, 3, 4 of each interval, (N, 3, 12), interpolated from
-    the node histories (used in statics, where they are zero, and by callers without stage data)."""
-    hm = midpoints(history)
-    return jnp.stack([hm, hm, history[1:]], axis=1)
+def _scan(F, state0, ds, history, stage_history, integrator, segment_starts, restarts, unroll, return_stages, collect=True):
+    """RK4 or Euler along the nodes for a state with a leading leg axis (a PyTree: a point and
+    its tangents). ``F(state, h)`` is the derivative along s given the histories ``h`` (n, 12);
+    ``ds`` (n,) the legs' step lengths; ``history`` (n, N+1, 12) and ``stage_history``
+    (n, N, 3|0, 12); ``restarts`` the states (n, M-1, ...) that replace the carried one at
+    ``segment_starts``. Returns ``(last state, per-node outputs (N, ...): state entering, state
+    arriving[, stages])`` (no outputs unless ``collect``)."""
+    n_steps = history.shape[1] - 1
+    tmap = jax.tree.map
 
-
-def integrate(
-    y0, history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1, stage_history=None, return_stages=False
-):
-    r"""Integrate from node 0 to node N.
-
-    **Arguments:**
-    - ``y0``: state at s = 0.
-    - ``history``: (N+1, 12) BDF-alpha history at the nodes (zeros in statics).
-    - ``k``, ``effects``: rod coefficients and effect switches (`rod.py`).
-    - ``ds``: step length L/N.
-    - ``integrator``: "rk4" or "euler" (static).
-    - ``segment_starts``: static tuple of node indices (>0) where a new segment starts.
-    - ``restarts``: (len(segment_starts), dim) start states of those segments.
-    - ``stage_history``: (N, 3, 12) histories at RK4 stages 2, 3, 4 of each interval (see
-      `rod_history.py`); interpolated from ``history`` when None.
-    - ``return_stages``: also return the (N, 3, dim) states at which stages 2, 3, 4 were evaluated.
-
-    **Returns:** ``(nodes, arrivals)`` (and ``stages`` if asked): the state at all N+1 nodes (after
-    restarts) and the states arriving at each segment start before the restart (or None).
-    """
-    n_steps = history.shape[0] - 1
-    f = lambda y, h: rhs(y, h, k, effects)  # noqa: E731
+    def axpy(a, x, y):  # y + a x per leg, leaf by leaf
+        return tmap(lambda xx, yy: yy + a.reshape(a.shape + (1,) * (xx.ndim - 1)) * xx, x, y)
 
     def step(y, h0, hs):
         if integrator == "euler":
-            return y + ds * f(y, h0), None
-        k1 = f(y, h0)
-        y2 = y + 0.5 * ds * k1
-        k2 = f(y2, hs[0])
-        y3 = y + 0.5 * ds * k2
-        k3 = f(y3, hs[1])
-        y4 = y + ds * k3
-        k4 = f(y4, hs[2])
-        return y + (ds / 6.0) * (k1 + 2.0 * (k2 + k3) + k4), jnp.stack([y2, y3, y4])
+            return axpy(ds, F(y, h0), y), None
+        k1 = F(y, h0)
+        y2 = axpy(0.5 * ds, k1, y)
+        k2 = F(y2, hs[:, 0])
+        y3 = axpy(0.5 * ds, k2, y)
+        k3 = F(y3, hs[:, 1])
+        y4 = axpy(ds, k3, y)
+        k4 = F(y4, hs[:, 2])
+        incr = tmap(lambda a, b, c, d: a + 2.0 * (b + c) + d, k1, k2, k3, k4)
+        return axpy(ds / 6.0, incr, y), tmap(lambda *z: jnp.stack(z, axis=1), y2, y3, y4)
 
-    if integrator == "rk4":
-        hs = stage_histories(history) if stage_history is None else stage_history
-    else:  # Euler never evaluates between nodes
-        hs = jnp.zeros((n_steps, 0, history.shape[1]), history.dtype)
-    xs = (history[:-1], hs)
+    xs = (jnp.swapaxes(history[:, :-1], 0, 1), jnp.swapaxes(stage_history, 0, 1))
     if segment_starts:
-        flags = np.zeros(n_steps + 1, dtype=bool)
+        flags = np.zeros(n_steps, dtype=bool)
         flags[list(segment_starts)] = True
-        replace = jnp.zeros((n_steps + 1, y0.shape[0]), y0.dtype).at[np.asarray(segment_starts)].set(restarts)
-        xs = xs + (jnp.asarray(flags[:-1]), replace[:-1])
+        idx = np.asarray(segment_starts)
+        replace = tmap(lambda r: jnp.zeros((n_steps,) + r.shape[:1] + r.shape[2:], r.dtype).at[idx].set(jnp.swapaxes(r, 0, 1)), restarts)
+        xs = xs + (jnp.asarray(flags), replace)
 
     def body(y, x):
-        y_in = jnp.where(x[2], x[3], y) if segment_starts else y
+        y_in = tmap(lambda r, c: jnp.where(x[2], r, c), x[3], y) if segment_starts else y
         y_next, stages = step(y_in, x[0], x[1])
         out = (y_in, y) + ((stages,) if return_stages and stages is not None else ())
-        return y_next, out
+        return y_next, out if collect else None
 
-    y_last, outs = jax.lax.scan(body, y0, xs, unroll=unroll)
-    ys_in, ys_arrived = outs[0], outs[1]
-    nodes = jnp.concatenate([ys_in, y_last[None]])
-    arrivals = ys_arrived[np.asarray(segment_starts)] if segment_starts else None
+    return jax.lax.scan(body, state0, xs, unroll=unroll)
+
+
+def integrate(y0, history, stage_history, k, effects, ds, integrator, segment_starts=None, restarts=None, unroll=1, return_stages=False):
+    r"""Integrate n legs from node 0 to node N.
+
+    **Arguments** (every array with a leading leg axis n):
+    - ``y0``: (n, dim) states at s = 0.
+    - ``history``: (n, N+1, 12) BDF-alpha history at the nodes (zeros in statics).
+    - ``stage_history``: (n, N, 3, 12) histories at RK4 stages 2, 3, 4 of each interval (see
+      `rod_history.py`; (n, N, 0, 12) for Euler).
+    - ``k``, ``effects``: rod coefficients (leaves per leg) and effect switches (`rod.py`).
+    - ``ds``: (n,) step lengths L/N.
+    - ``integrator``: "rk4" or "euler" (static).
+    - ``segment_starts``: static tuple of node indices (>0) where a new segment starts.
+    - ``restarts``: (n, len(segment_starts), dim) start states of those segments.
+    - ``return_stages``: also return the (n, N, 3, dim) states at which stages 2, 3, 4 were evaluated.
+
+    **Returns:** ``(nodes, arrivals)`` (and ``stages`` if asked): the states (n, N+1, dim) at all
+    nodes (after restarts) and those (n, M-1, dim) arriving at each segment start before the
+    restart (or None).
+    """
+    F = jax.vmap(lambda y, h, kk: rhs(y, h, kk, effects), in_axes=(0, 0, 0))
+    y_last, outs = _scan(lambda y, h: F(y, h, k), y0, ds, history, stage_history, integrator, segment_starts, restarts, unroll, return_stages)
+    nodes = jnp.swapaxes(jnp.concatenate([outs[0], y_last[None]]), 0, 1)
+    arrivals = jnp.swapaxes(outs[1][np.asarray(segment_starts)], 0, 1) if segment_starts else None
     if return_stages:
-        stages = outs[2] if integrator == "rk4" else jnp.zeros((n_steps, 0, y0.shape[0]), y0.dtype)
+        n, n_steps = y0.shape[0], history.shape[1] - 1
+        stages = jnp.swapaxes(outs[2], 0, 1) if integrator == "rk4" else jnp.zeros((n, n_steps, 0, y0.shape[1]), y0.dtype)
         return nodes, arrivals, stages
     return nodes, arrivals
+
+
+def integrate_tangents(y0, Y0, history, stage_history, k, effects, ds, integrator, segment_starts=None, restarts=None, restart_tangents=None, unroll=1):
+    r"""Integrate n legs and C tangent directions each together (forward sensitivities).
+
+    ``Y0`` (n, C, dim): tangents of the start states; ``restart_tangents`` (n, M-1, C, dim): of the
+    segment restarts. Each RK4 stage evaluates the ODE once and its derivative along the C
+    directions (one `jax.jvp` of the right-hand side, batched), so the scan is traced and
+    compiled once for all directions, unlike a `jax.jvp` of the whole `lax.scan`.
+
+    **Returns:** ``(y_N, Y_N, arrivals, arrival tangents)``: the last states (n, dim) and their
+    tangents (n, C, dim), and the states (n, M-1, dim) and tangents (n, M-1, C, dim) arriving at
+    each segment start (or None).
+    """
+
+    def one(y, Y, h, kk):
+        g = lambda z: rhs(z, h, kk, effects)  # noqa: E731
+        return jax.vmap(lambda t: jax.jvp(g, (y,), (t,)), out_axes=(None, 0))(Y)
+
+    F = jax.vmap(one)
+    (y_last, Y_last), outs = _scan(
+        lambda st, h: F(st[0], st[1], h, k), (y0, Y0), ds, history, stage_history, integrator, segment_starts,
+        (restarts, restart_tangents), unroll, False, bool(segment_starts),
+    )  # fmt: skip
+    if not segment_starts:
+        return y_last, Y_last, None, None
+    idx = np.asarray(segment_starts)
+    return y_last, Y_last, jnp.swapaxes(outs[1][0][idx], 0, 1), jnp.swapaxes(outs[1][1][idx], 0, 1)

@@ -20,10 +20,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ..numerics import newton
 from ..numerics.rod_history import RodHistory
-from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, unknowns_from_nodes
+from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, shoot_jacobian, unknowns_from_nodes
 from ..physics.rod import coefficients
 
 TIP = 18  # tip state the end sees: p, R, n, m
@@ -80,30 +80,22 @@ class Problem:
         return self.P + self.n * self.S
 
     # -- legs ---------------------------------------------------------------------------------
-    def _leg(self, x_i, y0, R_ref, hist, k, ds, return_stages=False):
-        s = self.scene.solver
-        return shoot(self.layout, x_i, y0, R_ref, hist, k, self.effects, ds, s.integrator, self.sc, s.unroll, return_stages)
-
     def legs(self, xl, return_stages=False):
-        """(junctions (n, S-6), tips (n, 18), nodes (n, N+1, dim)[, stages])."""
-
-        def one(x_i, y0, R_ref, hist, k, ds):
-            out = self._leg(x_i, y0, R_ref, hist, k, ds, return_stages)
-            return (out[1], out[0][-1, :TIP], out[0]) + out[2:]
-
-        return jax.vmap(one)(xl, self.y0, self.leg_R_ref, self.history, self.k, self.ds)
+        """(junctions (n, S-6), tips (n, 18), nodes (n, N+1, dim)[, stages]) of all legs at once."""
+        s = self.scene.solver
+        out = shoot(self.layout, xl, self.y0, self.leg_R_ref, self.history, self.k, self.effects, self.ds, s.integrator, self.sc, s.unroll, return_stages)
+        return (out[1], out[0][:, -1, :TIP], out[0]) + out[2:]
 
     def leg_jacobians(self, xl):
+        """(n, S-6+18, S): each leg's Jacobian of [junctions, tip state] with respect to its own
+        unknowns, by forward sensitivities along coloured seeds (columns sharing a colour never
+        share a nonzero row), decompressed by the sparsity mask."""
         colours, mask = self.layout.colouring(extra_rows=TIP)
-
-        def one(x_i, y0, R_ref, hist, k, ds):
-            def f(z):
-                nodes, junc = self._leg(z, y0, R_ref, hist, k, ds)
-                return jnp.concatenate([junc, nodes[-1, :TIP]])
-
-            return newton.dense_jacobian(f, x_i, colours, mask)
-
-        return jax.vmap(one)(xl, self.y0, self.leg_R_ref, self.history, self.k, self.ds)
+        _, colours = np.unique(colours, return_inverse=True)
+        seeds = jnp.asarray(np.eye(int(colours.max()) + 1)[colours].T)  # (C, S)
+        s = self.scene.solver
+        cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.history, self.k, self.effects, self.ds, s.integrator, self.sc, s.unroll)
+        return jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
 
     # -- end ----------------------------------------------------------------------------------
     def pose(self, xp):
@@ -145,10 +137,6 @@ class Problem:
         cons = jnp.concatenate([dA_dp[P:].reshape(n, 6, P), cons_via.reshape(n, 6, n * S)], axis=2)
         rows = jnp.concatenate([jun, cons], axis=1).reshape(n * S, P + n * S)
         return jnp.concatenate([top, rows], axis=0)
-
-    def jac_fn(self):
-        """``newton``'s ``jac_fn(f, x)``: this problem's structured Jacobian."""
-        return lambda _f, x: self.jacobian(x)
 
     def unknowns(self, pose_unknowns, nodes):
         return unknowns(self.layout, self.sc, pose_unknowns, nodes)

@@ -54,8 +54,7 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     co = _coefficients(scene)
     a = scene.actuator_values(jnp.zeros(()))
     ds = scene.legs.lengths(a) / s.grid_nodes
-    rest = lambda rod, nd, ds_i: rod_history.at_rest(co, rod, scene.effects, scene.gravity, nd, ds_i, s.integrator)  # noqa: E731
-    nodes, z, history = jax.vmap(rest)(scene.legs.rod, static.nodes, ds)
+    nodes, z, history = rod_history.at_rest(co, scene.legs.rod, scene.effects, scene.gravity, static.nodes, ds, s.integrator)
     memory = scene.end.rest_memory(static.position, static.rotation, co)
     lay = assembly.layout(scene, True)
     sc = assembly.scales(scene, co.c0)
@@ -93,7 +92,9 @@ def step(scene, state: StepState, t):
     prob, a, adot = _problem(scene, state, t, co)
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
-    x, jac, stats = newton.solve(prob.residual, guess, state.jac, prob.jac_fn(), s.newton, ~state.has_jac, newton.restart(x1))
+    x, jac, stats = newton.solve(
+        prob.residual, prob.jacobian, state.jac, s.newton, newton.with_restart(guess, x1, ~state.has_jac)
+    )
     xp, xl = prob.split(x)
     _, tips, nodes, stages = prob.legs(xl, return_stages=True)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co, h, k, scene.effects, nd, st, zp)  # noqa: E731

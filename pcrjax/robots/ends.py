@@ -59,7 +59,7 @@ class FreeTip(eqx.Module):
         return TipConfig(F=lam * F, M=lam * M)
 
     def static_plan(self, solver) -> tuple[int, int]:
-        """(continuation stages before the solve, continuation stages as its fallback)."""
+        """(continuation stages that lead to the solve, continuation stages as its fallback)."""
         return 0, solver.continuation
 
     def static_guess(self, legs, a, F, M, rod_weight, sc):

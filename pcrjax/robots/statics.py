@@ -44,27 +44,14 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     rod_weight = prob1.k.gravity if prob1.k.gravity is not None else jnp.zeros((n, 3))
     guess = end.static_guess(legs, a, F, M, rod_weight, prob1.sc)
     x0 = jax.lax.stop_gradient(jnp.zeros(prob1.size) if guess is None else guess)
-    total = newton.Stats.zero()
-    jac, need = newton.Jacobian.empty(prob1.size), True
+    homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
     if pre:
-
-        def stage(carry, lam):
-            x, jac, total = carry
-            pr = problem(lam)
-            x, jac, st = newton.newton(pr.residual, x, jac, pr.jac_fn(), s.newton, need_jacobian=False)
-            return (x, jac, newton.accumulate(total, st)), None
-
-        lams = jnp.arange(1, pre, dtype=jnp.float64) / pre
-        jac = newton.Jacobian.factor(problem(jnp.asarray(0.0)).jacobian(x0))
-        (x0, jac, total), _ = jax.lax.scan(stage, (x0, jac, total), lams)
-        x0, need = jax.lax.stop_gradient(x0), False
-    fallback = None
-    if fallback_stages:
-        fallback = newton.continuation(
-            lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x), fallback_stages, prob1.size
-        )
-    x, _, stats = newton.solve(prob1.residual, x0, jac, prob1.jac_fn(), s.newton, need, fallback)
-    stats = newton.accumulate(total, stats)
+        stages = newton.continuation_first(x0, pre)
+    elif fallback_stages:
+        stages = newton.with_continuation(x0, fallback_stages)
+    else:
+        stages, homotopy = newton.plain(x0), None
+    x, _, stats = newton.solve(prob1.residual, prob1.jacobian, newton.Jacobian.empty(prob1.size), s.newton, stages, homotopy)
     xp, xl = prob1.split(x)
     _, tips, nodes = prob1.legs(xl)
     p, R = end.output_pose(prob1.pose(xp), tips)
