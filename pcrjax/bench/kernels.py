@@ -45,8 +45,8 @@ def loop_body_kernels(hlo: str) -> int:
 
 
 def node_step_kernels(scene) -> int:
-    """Kernels per node step of the legs' integration in a dynamic step of ``scene`` (the spatial
-    scan's loop body; one scan serves every leg)."""
+    """Kernels per node step of the legs' integration in a dynamic step's residual of ``scene``
+    (the spatial scan's loop body; one scan serves every leg)."""
     from ..numerics import bdf_alpha
     from ..robots import assembly
 
@@ -58,8 +58,10 @@ def node_step_kernels(scene) -> int:
     R_ref = jnp.broadcast_to(jnp.eye(3), (n, lay.segments - 1, 3, 3))
 
     def f(xl):
-        prob = assembly.Problem(scene, True, a, jnp.zeros_like(a), scene.gravity, assembly.zero_histories(scene), R_ref, co.c0, None)
-        return prob.legs(xl)[1]
+        prob = assembly.Problem(
+            scene, True, a, jnp.zeros_like(a), scene.gravity, assembly.zero_histories(scene), R_ref, co.c0, None
+        )
+        return prob.legs(xl, all_nodes=False)[1]
 
     hlo = jax.jit(f).lower(jnp.zeros((n, lay.size))).compile().as_text()
     return loop_body_kernels(hlo)

@@ -134,15 +134,30 @@ def _restarts(layout: Layout, x, R_ref, sc: Scales):
     return jax.vmap(lambda xi, Ri: restart_states(layout, xi, Ri, sc))(x, R_ref)
 
 
-def shoot(layout: Layout, x, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1, return_stages=False):
+def shoot(
+    layout: Layout,
+    x,
+    base_state,
+    R_ref,
+    history,
+    k,
+    effects,
+    ds,
+    integrator,
+    sc: Scales,
+    unroll=1,
+    return_stages=False,
+    all_nodes=True,
+):
     """Integrate every leg for unknowns ``x`` (n, size); returns (nodes (n, N+1, dim), junction
     residuals (n, (M-1) d)[, stage states]).
 
     ``base_state`` (n, dim): the states at s = 0 with zero wrench; x[:, 0:6] sets the scaled base
     wrenches. ``R_ref`` (n, M-1, 3, 3); ``history``: a `RodHistory` per leg; ``k``, ``ds`` per leg.
+    Without ``all_nodes`` only the last node is returned, (n, 1, dim).
     """
     y0 = _starts(base_state, x, sc)
-    kw = dict(unroll=unroll, return_stages=return_stages)
+    kw = dict(unroll=unroll, return_stages=return_stages, all_nodes=all_nodes)
     if layout.segments == 1:
         out = integrate(y0, history.nodes, history.stages, k, effects, ds, integrator, **kw)
         junctions = jnp.zeros((x.shape[0], 0), x.dtype)

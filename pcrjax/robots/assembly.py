@@ -80,10 +80,25 @@ class Problem:
         return self.P + self.n * self.S
 
     # -- legs ---------------------------------------------------------------------------------
-    def legs(self, xl, return_stages=False):
-        """(junctions (n, S-6), tips (n, 18), nodes (n, N+1, dim)[, stages]) of all legs at once."""
+    def legs(self, xl, return_stages=False, all_nodes=True):
+        """(junctions (n, S-6), tips (n, 18), nodes (n, N+1, dim)[, stages]) of all legs at once
+        (nodes (n, 1, dim), the tips, unless ``all_nodes``)."""
         s = self.scene.solver
-        out = shoot(self.layout, xl, self.y0, self.leg_R_ref, self.history, self.k, self.effects, self.ds, s.integrator, self.sc, s.unroll, return_stages)
+        out = shoot(
+            self.layout,
+            xl,
+            self.y0,
+            self.leg_R_ref,
+            self.history,
+            self.k,
+            self.effects,
+            self.ds,
+            s.integrator,
+            self.sc,
+            s.unroll,
+            return_stages,
+            all_nodes,
+        )
         return (out[1], out[0][:, -1, :TIP], out[0]) + out[2:]
 
     def leg_jacobians(self, xl):
@@ -94,7 +109,20 @@ class Problem:
         _, colours = np.unique(colours, return_inverse=True)
         seeds = jnp.asarray(np.eye(int(colours.max()) + 1)[colours].T)  # (C, S)
         s = self.scene.solver
-        cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.history, self.k, self.effects, self.ds, s.integrator, self.sc, s.unroll)
+        cols = shoot_jacobian(
+            self.layout,
+            xl,
+            seeds,
+            self.y0,
+            self.leg_R_ref,
+            self.history,
+            self.k,
+            self.effects,
+            self.ds,
+            s.integrator,
+            self.sc,
+            s.unroll,
+        )
         return jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
 
     # -- end ----------------------------------------------------------------------------------
@@ -112,7 +140,7 @@ class Problem:
 
     def residual(self, x):
         xp, xl = self.split(x)
-        junc, tips, _ = self.legs(xl)
+        junc, tips, _ = self.legs(xl, all_nodes=False)
         A = self.algebraic(xp, tips)
         cons = A[self.P :].reshape(self.n, 6)
         return jnp.concatenate([A[: self.P], jnp.concatenate([junc, cons], axis=1).reshape(-1)])
@@ -120,7 +148,7 @@ class Problem:
     def jacobian(self, x):
         P, S, n = self.P, self.S, self.n
         xp, xl = self.split(x)
-        _, tips, _ = self.legs(xl)
+        _, tips, _ = self.legs(xl, all_nodes=False)
         Jl = self.leg_jacobians(xl)  # (n, S-6+18, S)
         Jjun, Jtip = Jl[:, : S - 6], Jl[:, S - 6 :]
         if P:
