@@ -168,6 +168,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--noise", action="store_true", help="stewart_gough: also print the thesis noise table (alpha x N x dt)")
     p.add_argument("--noise-nodes", default="5,10,50,85,170", help="N values of the noise table")
+    p.add_argument(
+        "--gradient", action="store_true", help="also time a reverse-mode gradient through a rollout against the rollout"
+    )
+    p.add_argument("--gradient-only", action="store_true", help="only the gradient timing")
+    p.add_argument("--gradient-nodes", type=int, default=20, help="RK4 nodes of the gradient timing (default 20)")
+    p.add_argument("--gradient-steps", type=int, default=200, help="steps of the gradient timing (default 200)")
     p.add_argument("--tol", type=float, default=1e-10, help="Newton tolerance of the measured runs (reference: 1e-12)")
     p.add_argument("--json", help="also write the table as JSON to this file")
     p.set_defaults(func=cmd_bench)

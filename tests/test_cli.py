@@ -111,3 +111,16 @@ def test_console_script_runs_shipped_scene(tmp_path):
         [sys.executable, "-m", "pcrjax.cli", "static", str(tmp_path / "x.toml")], capture_output=True, text=True, timeout=300
     )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_bench_prints_the_table_kernels_and_gradient_cost(capsys, tmp_path):
+    args = ["bench", "cantilever", "--nodes", "5", "--euler-nodes", "", "--duration", "0.02", "--reference-nodes", "5"]
+    args += ["--gradient", "--gradient-nodes", "5", "--gradient-steps", "3", "--json", str(tmp_path / "b.json")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "kern/node" in out and "forward runs" in out
+    rows = json.loads((tmp_path / "b.json").read_text())
+    assert [r["case"] for r in rows["rows"]] == ["thesis", "till"]
+    # An RK4 node step is at least four right-hand sides; the gradient costs more than the rollout.
+    assert all(r["kernels_per_node_step"] >= 4 for r in rows["rows"]) and rows["gradient"]["ratio"] > 1
+    assert all(r["position_error_m"] > 0 and r["realtime_factor"] > 0 for r in rows["rows"])

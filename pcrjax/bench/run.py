@@ -6,7 +6,8 @@ iterations and Jacobians per step, the end's position error against a converged 
 over time; ``rel err``: over the reference's largest displacement), the internal grid
 (nodes x shooting segments) and the XLA:CPU kernels one RK4/Euler node step runs
 (`kernels.node_step_kernels`): on this backend each kernel costs a fixed overhead, so this count
-is the lever on per-step time. ``--noise`` (Stewart-Gough) adds thesis Tables 4.3-4.4.
+is the lever on per-step time. ``--noise`` (Stewart-Gough) adds thesis Tables 4.3-4.4; ``--gradient`` the cost of a reverse-mode
+gradient through a rollout (`gradient.py`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 from ..io.scene_file import load_scene, with_solver
 from ..simulation import simulate
 from .cases import cases
+from .gradient import gradient_cost, print_gradient_cost
 from .kernels import node_step_kernels
 
 HEADER = (
@@ -120,12 +122,17 @@ def _noise_table(nodes, duration):
 def run_bench(args) -> dict:
     """Print (and with ``--json`` write) the benchmark of ``args.case``."""
     out: dict = {"case": args.case, "rows": []}
-    print(HEADER, flush=True)
-    for case in cases(args.case, args.nodes, args.euler_nodes, args.reference_nodes):
-        out["rows"] += _sweep(case, args.duration, args.tol)
-    print(
-        f"Newton tol {args.tol:g} (scaled max-norm); reference: finest RK4, tol 1e-12, same dt; 'grid': internal nodes x shooting segments."
-    )
+    todo = cases(args.case, args.nodes, args.euler_nodes, args.reference_nodes)
+    if not args.gradient_only:
+        print(HEADER, flush=True)
+        for case in todo:
+            out["rows"] += _sweep(case, args.duration, args.tol)
+        print(
+            f"Newton tol {args.tol:g} (scaled max-norm); reference: finest RK4, tol 1e-12, same dt; 'grid': nodes x shooting segments."
+        )
+    if args.gradient or args.gradient_only:
+        out["gradient"] = gradient_cost(todo[-1].scene, args.gradient_nodes, args.gradient_steps)
+        print_gradient_cost(out["gradient"])
     if args.noise and args.case == "stewart_gough":
         out["noise"] = _noise_table([int(n) for n in str(args.noise_nodes).split(",")], args.duration)
     if args.json:

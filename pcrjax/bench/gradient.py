@@ -1,0 +1,61 @@
+"""`pcrjax bench CASE --gradient`: the cost of a reverse-mode gradient through a rollout.
+
+For the case's first scene (RK4, ``--gradient-nodes`` nodes, ``--gradient-steps`` steps): compile
+and run time of the jitted rollout (a scalar of it: the end's final z) and of its reverse-mode
+gradient with respect to every rod's length and Young's modulus (implicit differentiation through
+every Newton solve), and their ratio. Runs are timed after compilation, best of ``repeats``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+
+from ..io.scene_file import with_solver
+from ..simulation import rollout
+
+
+def _timed(fn, *args, repeats: int = 3):
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        best = min(best, time.perf_counter() - t)
+    return compile_s, best
+
+
+def gradient_cost(scene, nodes: int, steps: int, repeats: int = 3) -> dict:
+    s = with_solver(scene, nodes=nodes, integrator="rk4", duration=steps * float(scene.solver.dt))
+    params = (s.legs.rod.length, s.legs.rod.youngs_modulus)
+
+    def final_z(p):
+        sc = eqx.tree_at(lambda q: (q.legs.rod.length, q.legs.rod.youngs_modulus), s, p)
+        return rollout(sc).position[-1, 2]
+
+    fwd_c, fwd_s = _timed(final_z, params, repeats=repeats)
+    grad_c, grad_s = _timed(jax.grad(final_z), params, repeats=repeats)
+    return dict(
+        case=s.name,
+        nodes=nodes,
+        steps=steps,
+        forward_compile_s=fwd_c,
+        forward_s=fwd_s,
+        gradient_compile_s=grad_c,
+        gradient_s=grad_s,
+        ratio=grad_s / fwd_s,
+    )
+
+
+def print_gradient_cost(row: dict):
+    print(
+        f"\nReverse-mode gradient (lengths and E of every rod) of the end's final z, RK4 N = {row['nodes']}, {row['steps']} steps ({row['case']}):\n"
+        f"  forward rollout: compile {row['forward_compile_s']:.1f} s, run {row['forward_s'] * 1e3:.1f} ms\n"
+        f"  gradient:        compile {row['gradient_compile_s']:.1f} s, run {row['gradient_s'] * 1e3:.1f} ms"
+        f" = {row['ratio']:.2f} forward runs",
+        flush=True,
+    )
