@@ -9,14 +9,12 @@ and are reported once at the end (as diffrax does). Gradients never unroll the i
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from functools import partial
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
-import numpy as np
 
 from . import results
 
@@ -76,26 +74,6 @@ class Stats(eqx.Module):
     jacobians: jnp.ndarray
     evaluations: jnp.ndarray
     result: jnp.ndarray
-
-    @classmethod
-    def zero(cls):
-        z = jnp.asarray(0)
-        return cls(z, jnp.asarray(0.0), z, z, jnp.asarray(results.SUCCESSFUL))
-
-
-def dense_jacobian(fn: Callable, x, colors: np.ndarray | None = None, mask: np.ndarray | None = None):
-    """Jacobian of ``fn`` at ``x`` by forward mode, optionally compressed by a column colouring.
-
-    With ``colors`` (column -> colour) and ``mask`` (the sparsity pattern), one JVP per colour
-    is enough; columns sharing a colour must not share a nonzero row.
-    """
-    if colors is None:
-        return jax.jacfwd(fn)(x)
-    _, colors = np.unique(colors, return_inverse=True)
-    n_colors = int(colors.max()) + 1
-    seeds = jnp.asarray(np.eye(n_colors)[colors].T, dtype=x.dtype)  # (colours, n)
-    _, cols = jax.vmap(lambda t: jax.jvp(fn, (x,), (t,)))(seeds)  # (colours, m)
-    return cols.T[:, colors] * jnp.asarray(mask, dtype=x.dtype)
 
 
 def _norm(r):

@@ -4,7 +4,7 @@ Single shooting from the clamp amplifies errors like $e^{\\lambda L}$, with
 $\\lambda = \\max((\\rho A c_0^2/EI)^{1/4}, c_0\\sqrt{\\rho/G})$ in dynamics: at
 $\\delta t = 10^{-5}$ s the thesis cantilever has $\\lambda L \\approx 107$ ($10^{46}$), which no
 float64 Newton can solve, and which is why the thesis failed at $\\delta t \\le 1$ ms. pcrjax
-therefore splits the rod into segments of $\\lambda \\ell \\lesssim 6$ (`auto_segments`), each
+therefore splits the rod into segments of $\\lambda \\ell \\lesssim 6$ (`solver.make_solver`), each
 with its own start state as unknowns, and adds continuity residuals; at the usual step sizes
 one segment (plain single shooting, 6 unknowns) is enough and nothing is added.
 
