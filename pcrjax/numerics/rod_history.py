@@ -31,7 +31,7 @@ import jax.numpy as jnp
 
 from ..physics.rod import coefficients, kinematic_state
 from . import bdf_alpha
-from .spatial import integrate, midpoints
+from .spatial import Rods, integrate, midpoints
 
 
 class RodHistory(eqx.Module):
@@ -80,7 +80,7 @@ def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, ds,
     static_eff = dataclasses.replace(effects, inertia=False)
     k = jax.vmap(lambda r: coefficients(r, static_eff, jnp.zeros((), static_nodes.dtype), gravity))(rod)
     zero = jax.vmap(lambda _: RodHistory.zeros(n_nodes - 1, integrator, dtype=static_nodes.dtype))(jnp.arange(n))
-    _, _, stages = integrate(static_nodes[:, 0], zero.nodes, zero.stages, k, static_eff, ds, integrator, return_stages=True)
+    _, _, stages = integrate(static_nodes[:, 0], Rods(zero.nodes, zero.stages, k, ds, static_eff, integrator), return_stages=True)
 
     def with_velocities(a):
         return jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (6,), a.dtype)], axis=-1)

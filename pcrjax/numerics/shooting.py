@@ -22,7 +22,7 @@ import numpy as np
 
 from ..physics.rod import DYNAMIC_DIM, STATIC_DIM
 from ..physics.rotations import cayley, cayley_inverse, matmul, skew_vee, transpose_matmul
-from .spatial import integrate, integrate_tangents
+from .spatial import Rods, integrate, integrate_tangents
 
 SEGMENT_CONDITIONING = 6.0  # target lambda * segment length (error growth e^6 = 400)
 
@@ -134,41 +134,26 @@ def _restarts(layout: Layout, x, R_ref, sc: Scales):
     return jax.vmap(lambda xi, Ri: restart_states(layout, xi, Ri, sc))(x, R_ref)
 
 
-def shoot(
-    layout: Layout,
-    x,
-    base_state,
-    R_ref,
-    history,
-    k,
-    effects,
-    ds,
-    integrator,
-    sc: Scales,
-    unroll=1,
-    return_stages=False,
-    all_nodes=True,
-):
+def shoot(layout: Layout, x, base_state, R_ref, rods: Rods, sc: Scales, return_stages=False, all_nodes=True):
     """Integrate every leg for unknowns ``x`` (n, size); returns (nodes (n, N+1, dim), junction
     residuals (n, (M-1) d)[, stage states]).
 
     ``base_state`` (n, dim): the states at s = 0 with zero wrench; x[:, 0:6] sets the scaled base
-    wrenches. ``R_ref`` (n, M-1, 3, 3); ``history``: a `RodHistory` per leg; ``k``, ``ds`` per leg.
-    Without ``all_nodes`` only the last node is returned, (n, 1, dim).
+    wrenches. ``R_ref`` (n, M-1, 3, 3); ``rods``: histories, coefficients and step lengths per leg
+    (`spatial.Rods`). Without ``all_nodes`` only the last node is returned, (n, 1, dim).
     """
     y0 = _starts(base_state, x, sc)
-    kw = dict(unroll=unroll, return_stages=return_stages, all_nodes=all_nodes)
     if layout.segments == 1:
-        out = integrate(y0, history.nodes, history.stages, k, effects, ds, integrator, **kw)
+        out = integrate(y0, rods, return_stages=return_stages, all_nodes=all_nodes)
         junctions = jnp.zeros((x.shape[0], 0), x.dtype)
     else:
         restarts = _restarts(layout, x, R_ref, sc)
-        out = integrate(y0, history.nodes, history.stages, k, effects, ds, integrator, layout.starts, restarts, **kw)
+        out = integrate(y0, rods, layout.starts, restarts, return_stages, all_nodes)
         junctions = jax.vmap(lambda a, r: junction_residuals(layout, a, r, sc))(out[1], restarts)
     return (out[0], junctions) + ((out[2],) if return_stages else ())
 
 
-def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, history, k, effects, ds, integrator, sc: Scales, unroll=1):
+def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: Scales):
     """Directional derivatives (n, C, rows) of each leg's [junction residuals, tip state (18)]
     along the C rows of ``seeds`` (C, size), by forward sensitivities integrated with the rods
     (`integrate_tangents`)."""
@@ -180,13 +165,12 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, history, k, effe
         return jax.vmap(one)(x, *args)
 
     y0, Y0 = lin(lambda z, b: _starts(b[None], z[None], sc)[0], base_state)
-    hist = (history.nodes, history.stages)
     if layout.segments == 1:
-        _, Y_last, _, _ = integrate_tangents(y0, Y0, *hist, k, effects, ds, integrator, unroll=unroll)
+        _, Y_last, _, _ = integrate_tangents(y0, Y0, rods)
         return Y_last[..., :18]
     restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
     RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
-    _, Y_last, arr, arr_t = integrate_tangents(y0, Y0, *hist, k, effects, ds, integrator, layout.starts, restarts, RT, unroll)
+    _, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT)
 
     def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)
         jvp = lambda at, rt: jax.jvp(lambda aa, rr: junction_residuals(layout, aa, rr, sc), (a, r), (at, rt))[1]  # noqa: E731

@@ -20,6 +20,7 @@ returned so that the caller can form continuity residuals.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -40,14 +41,14 @@ def midpoints(history):
     return jnp.concatenate([first[None], inner, last[None]])
 
 
-def _scan(F, state0, ds, history, stage_history, integrator, segment_starts, restarts, unroll, return_stages, collect=True):
+def _scan(F, state0, rods, segment_starts, restarts, return_stages, collect=True):
     """RK4 or Euler along the nodes for a state with a leading leg axis (a PyTree: a point and
-    its tangents). ``F(state, h)`` is the derivative along s given the histories ``h`` (n, 12);
-    ``ds`` (n,) the legs' step lengths; ``history`` (n, N+1, 12) and ``stage_history``
-    (n, N, 3|0, 12); ``restarts`` the states (n, M-1, ...) that replace the carried one at
+    its tangents). ``F(state, h)`` is the derivative along s given the histories ``h`` (n, 12)
+    (`Rods` gives the histories and step lengths); ``restarts`` the states (n, M-1, ...) that replace the carried one at
     ``segment_starts``. Returns ``(last state, per-node outputs (N, ...): state entering, state
     arriving[, stages])`` (no outputs unless ``collect``)."""
-    n_steps = history.shape[1] - 1
+    ds, integrator = rods.ds, rods.integrator
+    n_steps = rods.history.shape[1] - 1
     tmap = jax.tree.map
 
     def axpy(a, x, y):  # y + a x per leg, leaf by leaf
@@ -66,7 +67,7 @@ def _scan(F, state0, ds, history, stage_history, integrator, segment_starts, res
         incr = tmap(lambda a, b, c, d: a + 2.0 * (b + c) + d, k1, k2, k3, k4)
         return axpy(ds / 6.0, incr, y), tmap(lambda *z: jnp.stack(z, axis=1), y2, y3, y4)
 
-    xs = (jnp.swapaxes(history[:, :-1], 0, 1), jnp.swapaxes(stage_history, 0, 1))
+    xs = (jnp.swapaxes(rods.history[:, :-1], 0, 1), jnp.swapaxes(rods.stage_history, 0, 1))
     if segment_starts:
         flags = np.zeros(n_steps, dtype=bool)
         flags[list(segment_starts)] = True
@@ -82,7 +83,7 @@ def _scan(F, state0, ds, history, stage_history, integrator, segment_starts, res
         out = (y_in, y) + ((stages,) if return_stages and stages is not None else ())
         return y_next, out if collect else None
 
-    return jax.lax.scan(body, state0, xs, unroll=unroll)
+    return jax.lax.scan(body, state0, xs, unroll=rods.unroll)
 
 
 def _per_leg(fn, n: int):
@@ -93,30 +94,27 @@ def _per_leg(fn, n: int):
     return jax.vmap(fn)
 
 
-def integrate(
-    y0,
-    history,
-    stage_history,
-    k,
-    effects,
-    ds,
-    integrator,
-    segment_starts=None,
-    restarts=None,
-    unroll=1,
-    return_stages=False,
-    all_nodes=True,
-):
+class Rods(eqx.Module):
+    """What integrating n legs needs besides their start states: BDF-alpha histories at the nodes
+    (n, N+1, 12) and RK4 stage points (n, N, 3|0, 12), coefficients ``k`` and step lengths ``ds``
+    (n,) per leg, and the static effect switches, integrator and scan unroll."""
+
+    history: jnp.ndarray
+    stage_history: jnp.ndarray
+    k: object  # rod.RodCoefficients, leaves per leg
+    ds: jnp.ndarray
+    effects: object = eqx.field(static=True)
+    integrator: str = eqx.field(static=True, default="rk4")
+    unroll: int = eqx.field(static=True, default=1)
+
+
+def integrate(y0, rods: Rods, segment_starts=None, restarts=None, return_stages=False, all_nodes=True):
     r"""Integrate n legs from node 0 to node N.
 
     **Arguments** (every array with a leading leg axis n):
     - ``y0``: (n, dim) states at s = 0.
-    - ``history``: (n, N+1, 12) BDF-alpha history at the nodes (zeros in statics).
-    - ``stage_history``: (n, N, 3, 12) histories at RK4 stages 2, 3, 4 of each interval (see
-      `rod_history.py`; (n, N, 0, 12) for Euler).
-    - ``k``, ``effects``: rod coefficients (leaves per leg) and effect switches (`rod.py`).
-    - ``ds``: (n,) step lengths L/N.
-    - ``integrator``: "rk4" or "euler" (static).
+    - ``rods``: histories (zeros in statics; stage histories per `rod_history.py`), coefficients,
+      step lengths L/N and the static settings (`Rods`).
     - ``segment_starts``: static tuple of node indices (>0) where a new segment starts.
     - ``restarts``: (n, len(segment_starts), dim) start states of those segments.
     - ``return_stages``: also return the (n, N, 3, dim) states at which stages 2, 3, 4 were evaluated.
@@ -127,44 +125,19 @@ def integrate(
     nodes (after restarts; (n, 1, dim), the last, unless ``all_nodes``) and those (n, M-1, dim)
     arriving at each segment start before the restart (or None).
     """
-    F = _per_leg(lambda y, h, kk: rhs(y, h, kk, effects), y0.shape[0])
+    F = _per_leg(lambda y, h, kk: rhs(y, h, kk, rods.effects), y0.shape[0])
     collect = all_nodes or return_stages or bool(segment_starts)
-    y_last, outs = _scan(
-        lambda y, h: F(y, h, k),
-        y0,
-        ds,
-        history,
-        stage_history,
-        integrator,
-        segment_starts,
-        restarts,
-        unroll,
-        return_stages,
-        collect,
-    )
+    y_last, outs = _scan(lambda y, h: F(y, h, rods.k), y0, rods, segment_starts, restarts, return_stages, collect)
     nodes = jnp.swapaxes(jnp.concatenate([outs[0], y_last[None]]), 0, 1) if all_nodes else y_last[:, None]
     arrivals = jnp.swapaxes(outs[1][np.asarray(segment_starts)], 0, 1) if segment_starts else None
     if return_stages:
-        n, n_steps = y0.shape[0], history.shape[1] - 1
-        stages = jnp.swapaxes(outs[2], 0, 1) if integrator == "rk4" else jnp.zeros((n, n_steps, 0, y0.shape[1]), y0.dtype)
+        n, n_steps = y0.shape[0], rods.history.shape[1] - 1
+        stages = jnp.swapaxes(outs[2], 0, 1) if rods.integrator == "rk4" else jnp.zeros((n, n_steps, 0, y0.shape[1]), y0.dtype)
         return nodes, arrivals, stages
     return nodes, arrivals
 
 
-def integrate_tangents(
-    y0,
-    Y0,
-    history,
-    stage_history,
-    k,
-    effects,
-    ds,
-    integrator,
-    segment_starts=None,
-    restarts=None,
-    restart_tangents=None,
-    unroll=1,
-):
+def integrate_tangents(y0, Y0, rods: Rods, segment_starts=None, restarts=None, restart_tangents=None):
     r"""Integrate n legs and C tangent directions each together (forward sensitivities).
 
     ``Y0`` (n, C, dim): tangents of the start states; ``restart_tangents`` (n, M-1, C, dim): of the
@@ -178,14 +151,15 @@ def integrate_tangents(
     """
 
     def one(y, Y, h, kk):
-        g = lambda z: rhs(z, h, kk, effects)  # noqa: E731
+        g = lambda z: rhs(z, h, kk, rods.effects)  # noqa: E731
         return jax.vmap(lambda t: jax.jvp(g, (y,), (t,)), out_axes=(None, 0))(Y)
 
     F = _per_leg(one, y0.shape[0])
+    state = (y0, Y0)
+    collect = bool(segment_starts)
     (y_last, Y_last), outs = _scan(
-        lambda st, h: F(st[0], st[1], h, k), (y0, Y0), ds, history, stage_history, integrator, segment_starts,
-        (restarts, restart_tangents), unroll, False, bool(segment_starts),
-    )  # fmt: skip
+        lambda st, h: F(st[0], st[1], h, rods.k), state, rods, segment_starts, (restarts, restart_tangents), False, collect
+    )
     if not segment_starts:
         return y_last, Y_last, None, None
     idx = np.asarray(segment_starts)

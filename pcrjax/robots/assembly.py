@@ -24,6 +24,7 @@ import numpy as np
 
 from ..numerics.rod_history import RodHistory
 from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, shoot_jacobian, unknowns_from_nodes
+from ..numerics.spatial import Rods
 from ..physics.rod import coefficients
 
 TIP = 18  # tip state the end sees: p, R, n, m
@@ -72,8 +73,9 @@ class Problem:
         self.k = jax.vmap(lambda rod: coefficients(rod, self.effects, c0, gravity))(legs.rod)
         self.ds = legs.lengths(a) / scene.solver.grid_nodes
         self.y0 = legs.base_states(a, adot, inertia)
-        self.history = history
         self.leg_R_ref = leg_R_ref
+        s = scene.solver
+        self.rods = Rods(history.nodes, history.stages, self.k, self.ds, self.effects, s.integrator, s.unroll)
 
     @property
     def size(self) -> int:
@@ -83,22 +85,7 @@ class Problem:
     def legs(self, xl, return_stages=False, all_nodes=True):
         """(junctions (n, S-6), tips (n, 18), nodes (n, N+1, dim)[, stages]) of all legs at once
         (nodes (n, 1, dim), the tips, unless ``all_nodes``)."""
-        s = self.scene.solver
-        out = shoot(
-            self.layout,
-            xl,
-            self.y0,
-            self.leg_R_ref,
-            self.history,
-            self.k,
-            self.effects,
-            self.ds,
-            s.integrator,
-            self.sc,
-            s.unroll,
-            return_stages,
-            all_nodes,
-        )
+        out = shoot(self.layout, xl, self.y0, self.leg_R_ref, self.rods, self.sc, return_stages, all_nodes)
         return (out[1], out[0][:, -1, :TIP], out[0]) + out[2:]
 
     def leg_jacobians(self, xl):
@@ -108,21 +95,7 @@ class Problem:
         colours, mask = self.layout.colouring(extra_rows=TIP)
         _, colours = np.unique(colours, return_inverse=True)
         seeds = jnp.asarray(np.eye(int(colours.max()) + 1)[colours].T)  # (C, S)
-        s = self.scene.solver
-        cols = shoot_jacobian(
-            self.layout,
-            xl,
-            seeds,
-            self.y0,
-            self.leg_R_ref,
-            self.history,
-            self.k,
-            self.effects,
-            self.ds,
-            s.integrator,
-            self.sc,
-            s.unroll,
-        )
+        cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.rods, self.sc)
         return jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
 
     # -- end ----------------------------------------------------------------------------------
