@@ -225,7 +225,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
             nrm=jnp.where(advance, jnp.inf, nrm_new),
             jac=jac,
             need=jnp.where(advance, stages.fresh[k_next] | need_new, need_new),
-            fresh=fresh & ~(move & started),
+            fresh=jnp.where(advance, False, fresh & ~(move & started)),  # a new stage's start is a new point
             dx=dx,
             lam=jnp.where(advance, 0.0, jnp.where(move | give_up, 1.0, 0.5 * lam)),
             it=jnp.where(advance, 0, it_new),

@@ -25,6 +25,8 @@ rotations (along the geodesic), loads and weights then move linearly to their tr
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -35,12 +37,36 @@ from ..physics.rotations import cross, exp_map, matmul, matvec, rotation_vector,
 from .signals import Load
 
 
+class AbstractEnd(eqx.Module):
+    """What the legs' tips meet. ``cfg`` is the end's data for one solve (`static_config`,
+    `step_config`); ``body_pose`` what `pose` made of the pose unknowns ``xp``; ``tips`` (n, 18)
+    the legs' tip states [p, R, n, m]."""
+
+    load: eqx.AbstractVar[Load]
+
+    @abc.abstractmethod
+    def pose_size(self, effects) -> int:
+        """Number of pose unknowns (0, 3 or 6)."""
+
+    @abc.abstractmethod
+    def rows(self, cfg, xp, tips, sc, effects, inertia, body_pose):
+        """(balance rows (pose_size,), tip rows (n, 6)), scaled."""
+
+    @abc.abstractmethod
+    def static_plan(self, solver) -> tuple[int, int]:
+        """(continuation stages that lead to the static solve, continuation stages as its fallback)."""
+
+    @abc.abstractmethod
+    def advance(self, cfg, memory, body_pose, tips, co):
+        """(the end's memory for the next step, the end's energy)."""
+
+
 class TipConfig(eqx.Module):
     F: jnp.ndarray
     M: jnp.ndarray
 
 
-class FreeTip(eqx.Module):
+class FreeTip(AbstractEnd):
     """A free rod tip under ``load`` (force, moment: global frame)."""
 
     load: Load
@@ -59,7 +85,6 @@ class FreeTip(eqx.Module):
         return TipConfig(F=lam * F, M=lam * M)
 
     def static_plan(self, solver) -> tuple[int, int]:
-        """(continuation stages that lead to the solve, continuation stages as its fallback)."""
         return 0, solver.continuation
 
     def static_guess(self, legs, a, F, M, rod_weight, sc):
@@ -117,7 +142,7 @@ class PlatformConfig(eqx.Module):
     co: object | None  # bdf_alpha.Coefficients in dynamics
 
 
-class RigidPlatform(eqx.Module):
+class RigidPlatform(AbstractEnd):
     """A rigid platform: ``body`` (mass, inertia), where the legs attach (``attachment`` (n, 3)
     and ``clamp`` (n, 3, 3): each rod's tip frame, both in the platform frame), the reference
     pose that starts the static search, and the ``load`` on its centre."""

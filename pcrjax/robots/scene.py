@@ -12,7 +12,7 @@ import jax.numpy as jnp
 
 from ..numerics import solver as solver_mod
 from ..physics.rod import Effects
-from .ends import FreeTip, RigidPlatform
+from .ends import AbstractEnd
 from .legs import Legs
 from .signals import Actuation
 
@@ -23,7 +23,7 @@ class Scene(eqx.Module):
     effect switches and solver settings. ``robot`` names the scene file's kind (for outputs)."""
 
     legs: Legs
-    end: FreeTip | RigidPlatform
+    end: AbstractEnd
     actuation: Actuation | None
     gravity: jnp.ndarray
     effects: Effects
