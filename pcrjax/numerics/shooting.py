@@ -154,9 +154,9 @@ def shoot(layout: Layout, x, base_state, R_ref, rods: Rods, sc: Scales, return_s
 
 
 def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: Scales):
-    """Directional derivatives (n, C, rows) of each leg's [junction residuals, tip state (18)]
-    along the C rows of ``seeds`` (C, size), by forward sensitivities integrated with the rods
-    (`integrate_tangents`)."""
+    """Tip states (n, 18) and directional derivatives (n, C, rows) of each leg's [junction
+    residuals, tip state (18)] along the C rows of ``seeds`` (C, size), by forward sensitivities
+    integrated with the rods (`integrate_tangents`, which carries the states themselves too)."""
 
     def lin(fn, *args):  # fn's value at x and its derivatives along the seeds, per leg
         def one(x_i, *a):
@@ -166,17 +166,17 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: 
 
     y0, Y0 = lin(lambda z, b: _starts(b[None], z[None], sc)[0], base_state)
     if layout.segments == 1:
-        _, Y_last, _, _ = integrate_tangents(y0, Y0, rods)
-        return Y_last[..., :18]
+        y_last, Y_last, _, _ = integrate_tangents(y0, Y0, rods)
+        return y_last[:, :18], Y_last[..., :18]
     restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
     RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
-    _, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT)
+    y_last, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT)
 
     def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)
         jvp = lambda at, rt: jax.jvp(lambda aa, rr: junction_residuals(layout, aa, rr, sc), (a, r), (at, rt))[1]  # noqa: E731
         return jax.vmap(jvp)(jnp.swapaxes(a_t, 0, 1), jnp.swapaxes(r_t, 0, 1))
 
-    return jnp.concatenate([jax.vmap(junction_tangents)(arr, arr_t, restarts, RT), Y_last[..., :18]], axis=2)
+    return y_last[:, :18], jnp.concatenate([jax.vmap(junction_tangents)(arr, arr_t, restarts, RT), Y_last[..., :18]], axis=2)
 
 
 def unknowns_from_nodes(layout: Layout, nodes, R_ref, sc: Scales):

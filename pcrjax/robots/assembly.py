@@ -89,14 +89,15 @@ class Problem:
         return (out[1], out[0][:, -1, :TIP], out[0]) + out[2:]
 
     def leg_jacobians(self, xl):
-        """(n, S-6+18, S): each leg's Jacobian of [junctions, tip state] with respect to its own
-        unknowns, by forward sensitivities along coloured seeds (columns sharing a colour never
-        share a nonzero row), decompressed by the sparsity mask."""
+        """(tips (n, 18), (n, S-6+18, S)): the legs' tip states and each leg's Jacobian of
+        [junctions, tip state] with respect to its own unknowns, by forward sensitivities along
+        coloured seeds (columns sharing a colour never share a nonzero row), decompressed by the
+        sparsity mask."""
         colours, mask = self.layout.colouring(extra_rows=TIP)
         _, colours = np.unique(colours, return_inverse=True)
         seeds = jnp.asarray(np.eye(int(colours.max()) + 1)[colours].T)  # (C, S)
-        cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.rods, self.sc)
-        return jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
+        tips, cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.rods, self.sc)
+        return tips, jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
 
     # -- end ----------------------------------------------------------------------------------
     def pose(self, xp):
@@ -104,7 +105,7 @@ class Problem:
 
     def algebraic(self, xp, tips):
         """[balance (P), tip rows (6 per leg)] from the pose unknowns and the leg tips."""
-        bal, cons = self.end.rows(self.cfg, xp, tips, self.sc, self.scene.effects, self.inertia, self.pose(xp))
+        bal, cons = self.end.rows(self.cfg, tips, self.sc, self.scene.effects, self.inertia, self.pose(xp))
         return jnp.concatenate([bal, cons.reshape(-1)])
 
     # -- whole problem ------------------------------------------------------------------------
@@ -121,8 +122,7 @@ class Problem:
     def jacobian(self, x):
         P, S, n = self.P, self.S, self.n
         xp, xl = self.split(x)
-        _, tips, _ = self.legs(xl, all_nodes=False)
-        Jl = self.leg_jacobians(xl)  # (n, S-6+18, S)
+        tips, Jl = self.leg_jacobians(xl)  # (n, 18), (n, S-6+18, S): the tips come with their tangents
         Jjun, Jtip = Jl[:, : S - 6], Jl[:, S - 6 :]
         if P:
             dA_dp, dA_dt = jax.jacfwd(self.algebraic, argnums=(0, 1))(xp, tips)  # (P+6n, P), (P+6n, n, 18)

@@ -118,10 +118,8 @@ def step(scene, state: StepState, t):
         jac=jax.lax.stop_gradient(jac),
         has_jac=jnp.asarray(True),
     )
-    rods = jax.vmap(lambda k, nd, zz, ds: rod_physics.energy(k, scene.effects, nd, zz, ds))(prob.k, nodes, z, prob.ds)
-    out = StepOutput(
-        position=p, rotation=R, actuators=a, positions=nodes[:, :: s.refine, 0:3], energy=jnp.sum(rods) + end_energy, stats=stats
-    )
+    energy = _rods_energy(scene, prob, nodes, z) + end_energy
+    out = StepOutput(position=p, rotation=R, actuators=a, positions=nodes[:, :: s.refine, 0:3], energy=energy, stats=stats)
     return new_state, out
 
 
@@ -129,7 +127,11 @@ def rest_energy(scene, state: StepState, static: StaticSolution):
     """Total energy of the initial rest state (rods' elastic energy, weights' and loads' potential)."""
     co = _coefficients(scene)
     prob, _, _ = _problem(scene, state, jnp.zeros(()), co)
-    rods = jax.vmap(lambda k, nd, zz, ds: rod_physics.energy(k, scene.effects, nd, zz, ds))(
-        prob.k, state.nodes, state.z_prev, prob.ds
+    return _rods_energy(scene, prob, state.nodes, state.z_prev) + scene.end.rest_energy(
+        prob.cfg, state.memory, static.nodes[:, -1]
     )
-    return jnp.sum(rods) + scene.end.rest_energy(prob.cfg, state.memory, static.nodes[:, -1])
+
+
+def _rods_energy(scene, prob, nodes, z):
+    """Total energy of the legs (`physics.rod.energy` summed over legs)."""
+    return jnp.sum(jax.vmap(lambda k, nd, zz, ds: rod_physics.energy(k, scene.effects, nd, zz, ds))(prob.k, nodes, z, prob.ds))

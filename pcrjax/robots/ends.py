@@ -49,7 +49,7 @@ class AbstractEnd(eqx.Module):
         """Number of pose unknowns (0, 3 or 6)."""
 
     @abc.abstractmethod
-    def rows(self, cfg, xp, tips, sc, effects, inertia, body_pose):
+    def rows(self, cfg, tips, sc, effects, inertia, body_pose):
         """(balance rows (pose_size,), tip rows (n, 6)), scaled."""
 
     @abc.abstractmethod
@@ -59,6 +59,50 @@ class AbstractEnd(eqx.Module):
     @abc.abstractmethod
     def advance(self, cfg, memory, body_pose, tips, co):
         """(the end's memory for the next step, the end's energy)."""
+
+    @abc.abstractmethod
+    def weight(self, effects, gravity):
+        """The end's own weight (3,) N (zeros without gravity or mass)."""
+
+    @abc.abstractmethod
+    def static_config(self, legs, a, F, M, weight, lam):
+        """The end's data for a static solve at homotopy parameter ``lam`` (1: the true problem)."""
+
+    @abc.abstractmethod
+    def static_guess(self, legs, a, F, M, rod_weight, sc):
+        """The static solve's start (scaled unknowns), or None for zeros."""
+
+    @abc.abstractmethod
+    def rest_memory(self, position, rotation, co):
+        """The end's BDF-alpha memory at rest in the static pose (None if it has none)."""
+
+    @abc.abstractmethod
+    def step_config(self, memory, F, M, weight, co):
+        """The end's data for one time step."""
+
+    @abc.abstractmethod
+    def pose(self, cfg, xp, sc, planar):
+        """``body_pose`` from the pose unknowns (None without them)."""
+
+    @abc.abstractmethod
+    def output_pose(self, body_pose, tips):
+        """(position (3,), rotation (3, 3)) reported for the end."""
+
+    @abc.abstractmethod
+    def rest_energy(self, cfg, memory, tips):
+        """The end's energy at rest: potential of its weight or load."""
+
+    @abc.abstractmethod
+    def pose_unknowns(self, p, R, p_ref, R_ref, planar, sc):
+        """Scaled pose unknowns of (p, R) relative to (p_ref, R_ref)."""
+
+    @abc.abstractmethod
+    def previous_pose_unknowns(self, cfg, p, R, planar, sc):
+        """The last step's pose as unknowns relative to this step's pose (p, R)."""
+
+    @abc.abstractmethod
+    def describe(self) -> dict:
+        """What the end is, for summary.json."""
 
 
 class TipConfig(eqx.Module):
@@ -107,7 +151,7 @@ class FreeTip(AbstractEnd):
     def pose(self, cfg, xp, sc, planar):
         return None
 
-    def rows(self, cfg, xp, tips, sc, effects, inertia, body_pose):
+    def rows(self, cfg, tips, sc, effects, inertia, body_pose):
         cons = jnp.concatenate([(tips[:, 12:15] - cfg.F) / sc.force, (tips[:, 15:18] - cfg.M) / sc.moment], axis=1)
         return jnp.zeros((0,), tips.dtype), cons
 
@@ -116,7 +160,7 @@ class FreeTip(AbstractEnd):
 
     def advance(self, cfg, memory, body_pose, tips, co):
         """(next memory, energy of the end): the load's potential $-F \\cdot p$ of each tip."""
-        return None, -jnp.sum(tips[:, 0:3] @ cfg.F)
+        return None, self.rest_energy(cfg, memory, tips)
 
     def rest_energy(self, cfg, memory, tips):
         return -jnp.sum(tips[:, 0:3] @ cfg.F)
@@ -220,7 +264,7 @@ class RigidPlatform(AbstractEnd):
         """(p, R, dp, theta) from the pose unknowns."""
         return rigid.pose(xp, planar, cfg.p_prev, cfg.R_prev, sc.length)
 
-    def rows(self, cfg, xp, tips, sc, effects, inertia, body_pose):
+    def rows(self, cfg, tips, sc, effects, inertia, body_pose):
         p, R, dp, theta = body_pose
         r = rigid.rates(cfg.co, cfg.motion, dp, theta) if inertia else None
         force, moment = rigid.balance(self.body, R, cfg.attachment, tips[:, 12:15], tips[:, 15:18], cfg.F, cfg.M, cfg.weight, r)
