@@ -15,15 +15,18 @@ from .errors import ConvergenceError, SceneError
 from .io.scene_file import load_scene, scene_from_dict, shipped_scenes, with_solver
 from .numerics import results
 from .robots.scene import Scene
-from .simulation import StaticResult, Trajectory, rollout, simulate, solve_static
+from .robots.signals import PosePath
+from .simulation import StaticResult, Trajectory, inverse_dynamics, rollout, simulate, solve_static
 
 __all__ = [
     "ConvergenceError",
+    "PosePath",
     "Scene",
     "SceneError",
     "StaticResult",
     "Trajectory",
     "enable_compilation_cache",
+    "inverse_dynamics",
     "load_scene",
     "results",
     "rollout",

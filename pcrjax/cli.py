@@ -55,11 +55,7 @@ def cmd_simulate(args) -> int:
     from .simulation import simulate
 
     scene = _scene(args)
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise OSError(f"cannot create output folder {out}: {e.strerror}") from None
+    out = _out_dir(args.out)
     timings: dict = {}
     failure = None
     t0 = time.perf_counter()
@@ -119,14 +115,97 @@ def cmd_bench(args) -> int:
 
 
 def cmd_inverse(args) -> int:
-    from .io.scene_file import load_scene
+    from .io import outputs
+    from .io.scene_file import with_solver
+    from .io.tables import TableError, read_path
+    from .replay import path_errors, replay
+    from .robots.inverse import check_square
+    from .robots.limits import feasibility
+    from .robots.signals import PosePath
+    from .simulation import inverse_dynamics
 
-    scene = load_scene(args.scene)
-    if not scene.legs.actuated:
-        raise SceneError(f"{args.scene}: inverse dynamics needs actuated legs; robot '{scene.robot}' has none")
-    raise SceneError(
-        f"{args.scene}: inverse dynamics is not available in this version (forward dynamics and statics are: `pcrjax simulate`, `pcrjax static`)"
+    scene = _scene(args)
+    check_square(scene)
+    try:
+        t_path, values = read_path(args.path, scene.effects.planar)
+    except TableError as e:
+        raise SceneError(f"--path: {e}") from None
+    if t_path[0] > 0.0:
+        raise SceneError(f"--path: {args.path}: the path starts at t = {t_path[0]} s; it must start at t = 0 (the robot's rest pose)")
+    if args.duration is None:
+        scene = with_solver(scene, duration=float(t_path[-1]))
+    elif args.duration > t_path[-1] + 1e-12:
+        raise SceneError(f"--duration {args.duration} s is longer than the path ({t_path[-1]} s)")
+    path = PosePath.from_samples(t_path, values)
+    out = _out_dir(args.out)
+    progress = not args.quiet and sys.stderr.isatty()
+    timings: dict = {}
+    summary = {"settings": outputs.scene_settings(scene), "path_file": str(args.path)}
+    try:
+        traj = inverse_dynamics(scene, path, progress=progress, timings=timings)
+    except ConvergenceError as e:
+        summary["failure"] = {"message": f"inverse dynamics: {e}", "time_s": e.time, "residual": e.residual}
+        if e.partial is not None:
+            outputs.write_inverse(out, e.partial, _actuator_forces(scene, e.partial))
+        outputs.write_json(out / "summary.json", summary)
+        raise ConvergenceError(f"inverse dynamics: {e} (the path may leave the workspace there)", e.time, e.residual, e.reason) from None
+    forces = _actuator_forces(scene, traj)
+    outputs.write_inverse(out, traj, forces)
+    it = np.asarray(traj.iterations)
+    summary.update(
+        compile_s=timings["compile_s"],
+        wall_s=timings["run_s"],
+        realtime_factor=len(it) * float(scene.solver.dt) / timings["run_s"],
+        newton_iterations_mean=float(it.mean()),
+        feasibility=feasibility(scene, traj.t, traj.actuators, traj.base_wrenches),
     )
+    fwd_timings: dict = {}
+    try:
+        fwd = replay(scene, traj, progress=progress, timings=fwd_timings)
+        err = path_errors(path, fwd)
+        summary["replay"] = {k: v for k, v in err.items() if not isinstance(v, np.ndarray)}
+        planar = scene.effects.planar
+        wanted = np.asarray(traj.position)
+        outputs.write_trajectory(out / "replay.csv", fwd)
+        outputs.plot_inverse(
+            out / "inverse.png", traj.t, wanted[:, :2] if planar else wanted, np.asarray(fwd.position)[:, : 2 if planar else 3],
+            traj.actuators, err["position_m"], f"{scene.name}: inverse dynamics and forward replay",
+        )  # fmt: skip
+    except ConvergenceError as e:
+        summary["replay"] = {"failure": f"forward replay: {e}"}
+    outputs.write_json(out / "summary.json", summary)
+    if not args.quiet:
+        rep = summary["replay"]
+        check = (
+            f"replay error {rep['max_position_error_m']:.3g} m ({rep['relative_error']:.2g} of the motion)"
+            if "failure" not in rep
+            else rep["failure"]
+        )
+        feas = summary["feasibility"]
+        limits = "within limits" if feas["feasible"] else "LIMITS EXCEEDED: " + "; ".join(
+            f"{v['what']} ({v['worst']:.3g} vs {v['limit']})" for v in feas["violations"] if v.get("severity", "error") == "error"
+        )
+        print(
+            f"{scene.name}: {len(it)} steps in {timings['run_s']:.3f} s after {timings['compile_s']:.1f} s compile "
+            f"(real-time factor {summary['realtime_factor']:.2f}, {summary['newton_iterations_mean']:.2f} Newton iterations/step); "
+            f"{check}; {limits}; wrote {out}/"
+        )
+    return 0
+
+
+def _actuator_forces(scene, traj):
+    """(T, legs) base force along each leg's axis (N, positive pulling the rod out)."""
+    d = np.asarray(scene.legs.base_rotation)[:, :, 2]
+    return np.einsum("tlk,lk->tl", np.asarray(traj.base_wrenches)[:, :, 0, :], d)
+
+
+def _out_dir(path) -> Path:
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OSError(f"cannot create output folder {out}: {e.strerror}") from None
+    return out
 
 
 def _add_solver_overrides(p):
@@ -151,10 +230,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene")
     _add_solver_overrides(p)
     p.set_defaults(func=cmd_static)
-    p = sub.add_parser("inverse", help="actuator trajectories for a platform path (parallel robots)")
+    p = sub.add_parser(
+        "inverse",
+        help="inverse dynamics: actuator trajectories that make the platform follow a path; writes actuators.csv, "
+        "wrenches.csv, replay.csv (forward replay), summary.json (replay error, feasibility) and inverse.png",
+    )
     p.add_argument("scene")
-    p.add_argument("--path", required=True)
-    p.add_argument("--out", default="out")
+    p.add_argument(
+        "--path", required=True, help="CSV t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad (planar robots: also t_s,x_m,y_m,theta_rad)"
+    )
+    p.add_argument("--out", default="out", help="output folder (default: out)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or closing line")
+    _add_solver_overrides(p)
     p.set_defaults(func=cmd_inverse)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
     p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele"], help="benchmark case")

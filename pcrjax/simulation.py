@@ -19,8 +19,9 @@ import numpy as np
 from .errors import ConvergenceError, SceneError
 from .numerics import results
 from .physics.rotations import rotation_vector
-from .robots import dynamics, statics
+from .robots import dynamics, inverse, statics
 from .robots.scene import Scene
+from .robots.signals import PosePath
 
 
 class StaticResult(eqx.Module):
@@ -47,7 +48,7 @@ class StaticResult(eqx.Module):
 class Trajectory(eqx.Module):
     """Time series: ``t`` (T,), tip or platform ``position`` (T, 3), ``rotation_vector`` (T, 3),
     node ``positions`` (T, legs, N+1, 3), ``actuators`` (T, actuators) (no columns for a fixed
-    rod), total ``energy`` (T,) J of rods, platform, weights and the end's load; per step (T-1,):
+    rod), ``base_wrenches`` (T, legs, 2, 3) [n(0), m(0)] in N and N m, total ``energy`` (T,) J of rods, platform, weights and the end's load; per step (T-1,):
     Newton ``iterations``, final scaled ``residual``, ``jacobians`` evaluated and ``result`` (a
     `pcrjax.numerics.results` code). Row 0 is the initial static equilibrium."""
 
@@ -56,6 +57,7 @@ class Trajectory(eqx.Module):
     rotation_vector: jnp.ndarray
     positions: jnp.ndarray
     actuators: jnp.ndarray
+    base_wrenches: jnp.ndarray
     energy: jnp.ndarray
     iterations: jnp.ndarray
     residual: jnp.ndarray
@@ -72,13 +74,18 @@ def _is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
+def _base_wrenches(nodes):
+    """(legs, 2, 3) [n(0), m(0)] of each leg's ``nodes`` (legs, N+1, dim)."""
+    return jnp.stack([nodes[:, 0, 12:15], nodes[:, 0, 15:18]], axis=1)
+
+
 def static_result(scene, sol) -> StaticResult:
     nodes = sol.nodes
     return StaticResult(
         position=sol.position,
         rotation_vector=rotation_vector(sol.rotation),
         rotation=sol.rotation,
-        base_wrenches=jnp.stack([nodes[:, 0, 12:15], nodes[:, 0, 15:18]], axis=1),
+        base_wrenches=_base_wrenches(nodes),
         positions=nodes[:, :: scene.solver.refine, 0:3],
         residual_norm=sol.stats.residual,
         newton_iterations=sol.stats.iterations,
@@ -117,16 +124,20 @@ def check_structure(scene):
         raise SceneError(f"{scene.name}: {results.message(results.STALE_STRUCTURE)}")
 
 
-def _initial(scene):
-    static = statics.solve_static(scene)  # loads and actuators at t = 0
-    return static, dynamics.initial_step_state(scene, static)
+def _initial(scene, path=None):
+    """The static equilibrium at t = 0 (under the path's first pose, if given) and the rest state."""
+    if path is None:
+        static = statics.solve_static(scene)  # loads and actuators at t = 0
+    else:
+        static = inverse.solve_static_inverse(scene, *path.pose(jnp.zeros(()), scene.end.reference_position[2]))
+    return static, dynamics.initial_step_state(scene, static, inverse=path is not None)
 
 
-def _scan_steps(scene, state, i0, count: int, active=None):
+def _scan_steps(scene, state, i0, count: int, active=None, path=None):
     def advance(st, i):
         t = (i0 + i + 1) * scene.solver.dt
-        st, out = dynamics.step(scene, st, t)
-        return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy)
+        st, out = dynamics.step(scene, st, t, path)
+        return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy, out.base_wrenches)
 
     steps = jnp.arange(count)
     if active is None:
@@ -146,7 +157,7 @@ def _scan_steps(scene, state, i0, count: int, active=None):
 
 
 def _assemble(scene, static, state0, outs, steps):
-    pos, rv, shapes, stats, act, energy = outs
+    pos, rv, shapes, stats, act, energy, wrenches = outs
     t = jnp.arange(steps + 1) * scene.solver.dt
     e0 = dynamics.rest_energy(scene, state0, static)
     return Trajectory(
@@ -154,7 +165,8 @@ def _assemble(scene, static, state0, outs, steps):
         position=jnp.concatenate([static.position[None], pos[:steps]]),
         rotation_vector=jnp.concatenate([rotation_vector(static.rotation)[None], rv[:steps]]),
         positions=jnp.concatenate([static.nodes[None, :, :: scene.solver.refine, 0:3], shapes[:steps]]),
-        actuators=jnp.concatenate([scene.actuator_values(jnp.zeros(()))[None], act[:steps]]),
+        actuators=jnp.concatenate([static.actuators[None], act[:steps]]),
+        base_wrenches=jnp.concatenate([_base_wrenches(static.nodes)[None], wrenches[:steps]]),
         energy=jnp.concatenate([e0[None], energy[:steps]]),
         iterations=stats.iterations[:steps],
         residual=stats.residual[:steps],
@@ -164,8 +176,11 @@ def _assemble(scene, static, state0, outs, steps):
     )
 
 
-def rollout(scene, active_steps=None) -> Trajectory:
+def rollout(scene, active_steps=None, path=None) -> Trajectory:
     """Simulate ``scene.solver.steps`` steps from rest at the static equilibrium; pure function.
+
+    ``path`` (`PosePath`): inverse dynamics; the platform follows it from rest at its first pose
+    and the trajectory's ``actuators`` are the solved actuator values.
 
     ``active_steps`` (an integer, may be traced): simulate only the first ``active_steps`` steps;
     the later entries of the trajectory are zeros and cost no solve. One compiled program then
@@ -177,19 +192,21 @@ def rollout(scene, active_steps=None) -> Trajectory:
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use solve_static")
     check_structure(scene)
-    static, state = _initial(scene)
-    _, outs = _scan_steps(scene, state, 0, scene.solver.steps, active_steps)
+    if path is not None:
+        inverse.check_square(scene)
+    static, state = _initial(scene, path)
+    _, outs = _scan_steps(scene, state, 0, scene.solver.steps, active_steps, path)
     return _assemble(scene, static, state, outs, scene.solver.steps)
 
 
 @eqx.filter_jit
-def _start(scene):
-    return _initial(scene)
+def _start(scene, path):
+    return _initial(scene, path)
 
 
 @eqx.filter_jit
-def _advance(scene, state, i0, count: int):
-    return _scan_steps(scene, state, i0, count)
+def _advance(scene, state, i0, count: int, path):
+    return _scan_steps(scene, state, i0, count, path=path)
 
 
 _COMPILED: dict = {}
@@ -202,17 +219,17 @@ def _signature(tree):
     return treedef, sig
 
 
-def _compiled_advance(scene, state, chunk: int):
+def _compiled_advance(scene, state, chunk: int, path=None):
     """``_advance`` lowered and compiled once per process for each abstract signature (calls to
     ``simulate`` that differ only in numbers, e.g. alpha or dt, reuse it; ``lower().compile()``
     alone would compile again every time)."""
     try:
-        key = (_signature((scene, state)), chunk)
+        key = (_signature((scene, state, path)), chunk)
         hash(key)
     except TypeError:  # an unhashable static leaf: compile without caching
-        return _advance.lower(scene, state, jnp.asarray(0), chunk).compile()
+        return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     if key not in _COMPILED:
-        _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk).compile()
+        _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     return _COMPILED[key]
 
 
@@ -254,8 +271,31 @@ def simulate(
 
     When a step fails, the steps up to it are kept in the exception's ``partial`` attribute.
     """
+    return _run(scene, None, throw, progress, chunk, timings)
+
+
+def inverse_dynamics(
+    scene: Scene,
+    path: PosePath,
+    *,
+    throw: bool = True,
+    progress: bool | Callable = False,
+    chunk: int = 100,
+    timings: dict | None = None,
+) -> Trajectory:
+    """Direct inverse dynamics: the actuator values that make the platform follow ``path``
+    (`PosePath`) over the scene's duration, from rest at the path's first pose. The trajectory's
+    ``actuators`` are the solution; its ``position`` and ``rotation_vector`` are the path at the
+    step times. Arguments and failures as in `simulate`."""
+    if any(_is_traced(leaf) for leaf in jax.tree.leaves((scene, path))):
+        return rollout(scene, path=path)
+    inverse.check_square(scene)
+    return _run(scene, path, throw, progress, chunk, timings)
+
+
+def _run(scene, path, throw, progress, chunk, timings) -> Trajectory:
     if any(_is_traced(leaf) for leaf in jax.tree.leaves(scene)):
-        return rollout(scene)
+        return rollout(scene, path=path)
     if not scene.effects.inertia:
         raise SceneError("effects.inertia is false: the scene is static; use `pcrjax static`")
     check_structure(scene)
@@ -263,7 +303,7 @@ def simulate(
     chunk = max(1, min(chunk, steps))
     n_chunks = -(-steps // chunk)
     t_c0 = time.perf_counter()
-    static, state = _start(scene)
+    static, state = _start(scene, path)
     state0 = state
     jax.block_until_ready(state)
     if int(static.stats.result) != results.SUCCESSFUL:
@@ -272,7 +312,7 @@ def simulate(
             f"initial static equilibrium did not converge: {results.message(code)} (scaled residual {res:.3e})", 0.0, res, code
         )
     # Compile the chunk once (lower+compile), so run time excludes compilation.
-    compiled = _compiled_advance(scene, state, chunk)
+    compiled = _compiled_advance(scene, state, chunk, path)
     compile_s = time.perf_counter() - t_c0
     bar = None
     if progress is True:
@@ -286,7 +326,7 @@ def simulate(
     t_r0 = time.perf_counter()
     failure = None
     for c in range(n_chunks):
-        state, outs = compiled(scene, state, jnp.asarray(c * chunk), chunk)
+        state, outs = compiled(scene, state, jnp.asarray(c * chunk), chunk, path)
         codes = np.asarray(outs[3].result)
         outs_all.append(outs)
         done = min((c + 1) * chunk, steps)

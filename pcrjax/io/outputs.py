@@ -23,9 +23,28 @@ def write_trajectory(path: Path, traj):
     actuators = np.asarray(traj.actuators)
     cols = [t[:, None], np.asarray(traj.position), np.asarray(traj.rotation_vector), actuators]
     header = list(TRAJECTORY_HEADER) + [f"a{i + 1}" for i in range(actuators.shape[1])]
-    data = np.concatenate(cols, axis=1)
-    lines = [",".join(header)] + [",".join(f"{v:.17g}" for v in row) for row in data]
+    write_columns(path, header, np.concatenate(cols, axis=1))
+
+
+def write_columns(path: Path, header, data):
+    """A CSV file: ``header`` names, then the rows of ``data`` at full precision."""
+    lines = [",".join(header)] + [",".join(f"{v:.17g}" for v in row) for row in np.asarray(data)]
     _atomic_write(path, "\n".join(lines) + "\n")
+
+
+def write_inverse(out: Path, traj, actuator_forces):
+    """``actuators.csv`` (``t_s,a1..an``: usable as ``[actuation] file``) and ``wrenches.csv``
+    (``t_s``, per leg i its base force ``n{i}_x_N..`` and moment ``m{i}_x_Nm..``, then the
+    actuator forces ``f1_N..``: the base force along each leg's axis, positive pulling)."""
+    t = np.asarray(traj.t)[:, None]
+    a = np.asarray(traj.actuators)
+    write_columns(out / "actuators.csv", ["t_s"] + [f"a{i + 1}" for i in range(a.shape[1])], np.concatenate([t, a], axis=1))
+    w = np.asarray(traj.base_wrenches)  # (T, legs, 2, 3)
+    header = ["t_s"]
+    for i in range(w.shape[1]):
+        header += [f"n{i + 1}_{c}_N" for c in "xyz"] + [f"m{i + 1}_{c}_Nm" for c in "xyz"]
+    header += [f"f{i + 1}_N" for i in range(w.shape[1])]
+    write_columns(out / "wrenches.csv", header, np.concatenate([t, w.reshape(len(t), -1), np.asarray(actuator_forces)], axis=1))
 
 
 def write_json(path: Path, obj):
@@ -165,3 +184,43 @@ def plot_shapes(path: Path, traj, title: str, count: int = 12):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str):
+    """Inverse dynamics at a glance (as thesis Fig. 4.10-4.11): the prescribed path and its
+    forward replay in the plane of largest motion; the actuator values; each coordinate
+    prescribed and replayed over time with the replay's position error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t, wanted, replayed, actuators, error = map(np.asarray, (t, wanted, replayed, actuators, error))
+    d = wanted - wanted[0]
+    f, unit = _scale(d)
+    i, j = sorted(np.argsort(d.std(axis=0))[::-1][:2])
+    fig, ax = plt.subplots(1, 3, figsize=(16, 4.5))
+    ax[0].plot(d[:, i] * f, d[:, j] * f, lw=2.5, color="tab:blue", label="prescribed (inverse)")
+    r = (replayed - wanted[0]) * f
+    ax[0].plot(r[:, i], r[:, j], lw=1, ls="--", color="tab:red", label="forward replay")
+    ax[0].set_xlabel(f"{'xyz'[i]} − {'xyz'[i]}(0) [{unit}]")
+    ax[0].set_ylabel(f"{'xyz'[j]} − {'xyz'[j]}(0) [{unit}]")
+    ax[0].set_aspect("equal", adjustable="datalim")
+    ax[0].legend()
+    ax[0].grid(alpha=0.3)
+    ax[0].set_title("platform path")
+    fa, aunit = _scale(actuators - actuators[0])
+    _time_series(ax[1], t, (actuators - actuators[0]) * fa, [f"a{k + 1} − a{k + 1}(0)" for k in range(actuators.shape[1])], f"actuators [{aunit}]")
+    ax[1].set_title("actuator trajectories")
+    for k, c in ((i, "tab:blue"), (j, "tab:orange")):
+        ax[2].plot(t, d[:, k] * f, color=c, lw=2.5, label=f"{'xyz'[k]} prescribed")
+        ax[2].plot(t, (replayed[:, k] - wanted[0, k]) * f, color="k", lw=0.8, ls="--", label=f"{'xyz'[k]} replayed")
+    ax[2].set_xlabel("t [s]")
+    ax[2].set_ylabel(f"displacement [{unit}]")
+    ax[2].grid(alpha=0.3)
+    ax[2].legend(loc="upper left")
+    tw = ax[2].twinx()  # log scale: the error is at the solver's tolerance when all is well
+    tw.semilogy(t, np.maximum(error, 1e-18), color="tab:green", lw=1)
+    tw.set_ylabel("replay position error [m]", color="tab:green")
+    ax[2].set_title("prescribed vs replayed")
+    _save(fig, path, title)

@@ -39,7 +39,7 @@ from ..physics.rod import DiagonalDamping, Effects, Rod, TauDamping
 from ..robots.ends import FreeTip, RigidPlatform
 from ..robots.legs import Legs
 from ..robots.scene import Scene
-from ..robots.signals import KINDS, Actuation, Load
+from ..robots.signals import ActuatorLimits, KINDS, Actuation, Load
 from .tables import TableError, read_table
 
 LOAD_COLUMNS = ("t_s", "fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm")
@@ -82,7 +82,7 @@ _SCHEMA = {
         "attachment",  # triskele
     },
     "platform": {"mass", "inertia", "position", "rotation_vector", "angle"},
-    "actuation": {"initial", "final", "kind", "start_time", "duration", "file"},
+    "actuation": {"initial", "final", "kind", "start_time", "duration", "file", "range", "max_speed", "max_acceleration"},
     "load": {"force", "moment", "release_time", "step_time", "file"},
 }
 _COMMON = {"name", "robot", "solver", "effects", "environment", "rod"}
@@ -453,7 +453,30 @@ def _actuation(r: _Reader, n: int, default_initial, base_dir: Path) -> Actuation
         table_t=None if table_t is None else _f(table_t),
         table_a=None if table_a is None else _f(table_a),
         kinds=tuple(kinds) if table_t is None else (),
+        limits=_limits(r, t, n),
     )
+
+
+def _limits(r: _Reader, t: dict, n: int) -> ActuatorLimits | None:
+    """[actuation] range = [low, high] (or one pair per actuator), max_speed, max_acceleration."""
+    if not any(k in t for k in ("range", "max_speed", "max_acceleration")):
+        return None
+    low, high = np.full(n, -np.inf), np.full(n, np.inf)
+    if "range" in t:
+        v = t["range"]
+        pairs = v if v and isinstance(v[0], list) else [v] * n
+        if len(pairs) != n or any(not isinstance(p, list) or len(p) != 2 for p in pairs):
+            r.fail("[actuation] range", f"must be [low, high] or {n} such pairs, got {v!r}")
+        arr = np.array([r.numbers({"range": p}, "actuation", "range", 2) for p in pairs])
+        if np.any(arr[:, 0] >= arr[:, 1]):
+            r.fail("[actuation] range", f"low must be below high, got {v!r}")
+        low, high = arr[:, 0], arr[:, 1]
+    speed = _per_leg(r, t, "max_speed", n, np.inf)
+    accel = _per_leg(r, t, "max_acceleration", n, np.inf)
+    for key, vals in (("max_speed", speed), ("max_acceleration", accel)):
+        if np.any(vals <= 0):
+            r.fail(f"[actuation] {key}", f"must be > 0, got {t[key]!r}")
+    return ActuatorLimits(low=_f(low), high=_f(high), max_speed=_f(speed), max_acceleration=_f(accel))
 
 
 def _per_leg(r, t, key, n, default):

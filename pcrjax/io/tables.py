@@ -59,3 +59,43 @@ def read_table(path, columns: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         i = int(bad[0])
         raise TableError(f"{p}: times must strictly increase: line {i + 3} has t = {t[i + 1]} after t = {t[i]}")
     return t, a[:, 1:]
+
+
+SPATIAL_PATH = ("t_s", "x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad")
+PLANAR_PATH = ("t_s", "x_m", "y_m", "theta_rad")
+
+
+def path_file(name) -> Path:
+    """A path file: ``name`` itself if it exists, else the shipped path of that name
+    (``pcrjax/paths/NAME.csv``: ``triskele_circle``, ``triskele_move``, ``stewart_gough_circle``)."""
+    from importlib import resources
+
+    p = Path(name)
+    if p.is_file():
+        return p
+    shipped = Path(str(resources.files("pcrjax") / "paths" / f"{Path(name).stem}.csv"))
+    return shipped if p.suffix in ("", ".csv") and shipped.is_file() else p
+
+
+def read_path(path, planar: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Read a platform path (a file, or a shipped path's name: `path_file`): ``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad`` (rotation vector), or on a
+    planar bearing also ``t_s,x_m,y_m,theta_rad``. Returns ``(t (K,), values (K, 6 | 3))``,
+    planar values as [x, y, theta]. A planar robot's spatial path must keep its rotation about z."""
+    p = path_file(path)
+    head = ""
+    if p.is_file():
+        try:
+            with p.open(newline="") as fh:
+                head = next((line for line in fh if line.strip()), "")
+        except UnicodeDecodeError:
+            raise TableError(f"{p}: not a text file") from None
+    planar_header = tuple(c.strip() for c in head.strip().split(",")) == PLANAR_PATH
+    if planar_header and not planar:
+        raise TableError(f"{p}: a planar path (t_s,x_m,y_m,theta_rad) needs a planar robot; give {','.join(SPATIAL_PATH)}")
+    t, v = read_table(p, PLANAR_PATH if planar_header else SPATIAL_PATH)
+    if planar and not planar_header:
+        tilt = np.abs(v[:, 3:5]).max()
+        if tilt > 1e-9:
+            raise TableError(f"{p}: the robot is planar but the path tilts it (|rx|, |ry| up to {tilt:.3g} rad)")
+        v = v[:, [0, 1, 5]]
+    return t, v

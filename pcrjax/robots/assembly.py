@@ -120,23 +120,32 @@ class Problem:
         return jnp.concatenate([A[: self.P], jnp.concatenate([junc, cons], axis=1).reshape(-1)])
 
     def jacobian(self, x):
-        P, S, n = self.P, self.S, self.n
         xp, xl = self.split(x)
-        tips, Jl = self.leg_jacobians(xl)  # (n, 18), (n, S-6+18, S): the tips come with their tangents
+        tips, Jl = self.leg_jacobians(xl)  # the tips come with their tangents
+        return self.assemble(xp, tips, Jl)
+
+    def assemble(self, xp, tips, Jl, pose_columns=True):
+        """The whole Jacobian from the legs' blocks ``Jl`` (n, S-6+18, C) of [junctions, tip
+        state] over each leg's own C unknowns: columns [pose (P, unless not ``pose_columns``),
+        then C per leg], rows [balance (P), then per leg its junctions and 6 tip rows]."""
+        P, S, n = self.P, self.S, self.n
+        C = Jl.shape[2]
         Jjun, Jtip = Jl[:, : S - 6], Jl[:, S - 6 :]
         if P:
             dA_dp, dA_dt = jax.jacfwd(self.algebraic, argnums=(0, 1))(xp, tips)  # (P+6n, P), (P+6n, n, 18)
         else:
             dA_dt = jax.jacfwd(lambda t: self.algebraic(xp, t))(tips)
-            dA_dp = jnp.zeros((6 * n, 0), x.dtype)
-        via = jnp.einsum("rnt,nts->rns", dA_dt, Jtip)  # (P+6n, n, S), leg-block structure
-        top = jnp.concatenate([dA_dp[:P], via[:P].reshape(P, n * S)], axis=1)
-        eye = jnp.eye(n, dtype=x.dtype)
-        jun = jnp.einsum("ij,irs->irjs", eye, Jjun).reshape(n, S - 6, n * S)
-        jun = jnp.concatenate([jnp.zeros((n, S - 6, P), x.dtype), jun], axis=2)
-        cons_via = jnp.einsum("ij,irs->irjs", eye, via[P:].reshape(n, 6, n, S).diagonal(axis1=0, axis2=2).transpose(2, 0, 1))
-        cons = jnp.concatenate([dA_dp[P:].reshape(n, 6, P), cons_via.reshape(n, 6, n * S)], axis=2)
-        rows = jnp.concatenate([jun, cons], axis=1).reshape(n * S, P + n * S)
+        if not (P and pose_columns):
+            dA_dp = jnp.zeros((P + 6 * n, 0), tips.dtype)
+        Pc = dA_dp.shape[1]
+        via = jnp.einsum("rnt,nts->rns", dA_dt, Jtip)  # (P+6n, n, C), leg-block structure
+        top = jnp.concatenate([dA_dp[:P], via[:P].reshape(P, n * C)], axis=1)
+        eye = jnp.eye(n, dtype=tips.dtype)
+        jun = jnp.einsum("ij,irs->irjs", eye, Jjun).reshape(n, S - 6, n * C)
+        jun = jnp.concatenate([jnp.zeros((n, S - 6, Pc), tips.dtype), jun], axis=2)
+        cons_via = jnp.einsum("ij,irs->irjs", eye, via[P:].reshape(n, 6, n, C).diagonal(axis1=0, axis2=2).transpose(2, 0, 1))
+        cons = jnp.concatenate([dA_dp[P:].reshape(n, 6, Pc), cons_via.reshape(n, 6, n * C)], axis=2)
+        rows = jnp.concatenate([jun, cons], axis=1).reshape(n * S, Pc + n * C)
         return jnp.concatenate([top, rows], axis=0)
 
     def unknowns(self, pose_unknowns, nodes):

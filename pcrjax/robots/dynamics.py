@@ -17,6 +17,7 @@ from ..numerics import bdf_alpha, newton, rod_history
 from ..numerics.rod_history import RodHistory
 from ..physics import rod as rod_physics
 from . import assembly
+from .inverse import InverseProblem
 from .statics import StaticSolution
 
 
@@ -39,6 +40,7 @@ class StepOutput(eqx.Module):
     rotation: jnp.ndarray
     actuators: jnp.ndarray
     positions: jnp.ndarray  # (n, N+1, 3) at the user's nodes
+    base_wrenches: jnp.ndarray  # (n, 2, 3) [n(0), m(0)] of each leg
     energy: jnp.ndarray
     stats: newton.Stats
 
@@ -48,18 +50,22 @@ def _coefficients(scene):
     return bdf_alpha.coefficients(s.dt, s.alpha)
 
 
-def initial_step_state(scene, static: StaticSolution) -> StepState:
-    """Rest at the static equilibrium: rods, end and actuators at rest forever."""
+def initial_step_state(scene, static: StaticSolution, inverse: bool = False) -> StepState:
+    """Rest at the static equilibrium: rods, end and actuators at rest forever. ``inverse``: the
+    unknowns are those of inverse dynamics (actuators in place of the pose)."""
     s = scene.solver
     co = _coefficients(scene)
-    a = scene.actuator_values(jnp.zeros(()))
+    a = static.actuators
     ds = scene.legs.lengths(a) / s.grid_nodes
     nodes, z, history = rod_history.at_rest(co, scene.legs.rod, scene.effects, scene.gravity, static.nodes, ds, s.integrator)
     memory = scene.end.rest_memory(static.position, static.rotation, co)
     lay = assembly.layout(scene, True)
     sc = assembly.scales(scene, co.c0)
-    xp = scene.end.pose_unknowns(static.position, static.rotation, static.position, static.rotation, scene.effects.planar, sc)
-    x = assembly.unknowns(lay, sc, xp, nodes)
+    if inverse:
+        x = _inverse_unknowns(lay, sc, nodes, jnp.zeros_like(a))
+    else:
+        xp = scene.end.pose_unknowns(static.position, static.rotation, static.position, static.rotation, scene.effects.planar, sc)
+        x = assembly.unknowns(lay, sc, xp, nodes)
     return StepState(
         nodes=nodes,
         z_prev=z,
@@ -73,60 +79,113 @@ def initial_step_state(scene, static: StaticSolution) -> StepState:
     )
 
 
-def _problem(scene, state: StepState, t, co):
-    a = scene.actuator_values(t)
-    adot = co.c0 * a + state.ah
+def _inverse_unknowns(lay, sc, nodes, xa):
+    """Inverse-dynamics unknowns (`InverseProblem`) reproducing ``nodes``, with scaled actuator
+    unknowns ``xa``."""
+    xl = assembly.unknowns(lay, sc, jnp.zeros((0,), nodes.dtype), nodes).reshape(nodes.shape[0], lay.size)
+    return jnp.concatenate([xl, xa[:, None]], axis=1).reshape(-1)
+
+
+def _problem(scene, state: StepState, co, a, t):
+    """The forward problem of the step to time ``t`` with actuator values ``a``."""
     F, M = scene.end.load(t)
     cfg = scene.end.step_config(state.memory, F, M, scene.end.weight(scene.effects, scene.gravity), co)
     lay = assembly.layout(scene, True)
-    prob = assembly.Problem(
-        scene, True, a, adot, scene.gravity, state.history, assembly.leg_rotations(lay, state.nodes), co.c0, cfg
-    )
-    return prob, a, adot
+    R_ref = assembly.leg_rotations(lay, state.nodes)
+    return assembly.Problem(scene, True, a, co.c0 * a + state.ah, scene.gravity, state.history, R_ref, co.c0, cfg)
 
 
-def step(scene, state: StepState, t):
-    """Advance one time step to time ``t``; returns (new state, output)."""
+class _Forward:
+    """Forward dynamics: the actuators follow the scene's actuation; the end's pose is unknown."""
+
+    def __init__(self, scene, state: StepState, t, co):
+        self.scene, self.state = scene, state
+        self.a = scene.actuator_values(t)
+        self.prob = _problem(scene, state, co, self.a, t)
+
+    def solution(self, x):
+        """(forward problem at the solution, end pose, leg unknowns, actuator values)."""
+        xp, xl = self.prob.split(x)
+        return self.prob, self.prob.pose(xp), xl, self.a
+
+    def relative_unknowns(self, prob, p, R, nodes, a):
+        """This step's and the last step's unknowns, relative to this step's pose and rotations."""
+        end, planar = self.scene.end, self.scene.effects.planar
+        x_rel = prob.unknowns(end.pose_unknowns(p, R, p, R, planar, prob.sc), nodes)
+        x_prev_rel = prob.unknowns(end.previous_pose_unknowns(prob.cfg, p, R, planar, prob.sc), self.state.nodes)
+        return x_rel, x_prev_rel
+
+
+class _Inverse(_Forward):
+    """Inverse dynamics: the end follows ``path`` (`signals.PosePath`); the actuators are unknown."""
+
+    def __init__(self, scene, state: StepState, t, co, path):
+        self.scene, self.state = scene, state
+        ref = _problem(scene, state, co, state.a1, t)
+        p, R = path.pose(t, ref.cfg.p_prev[2])
+        h, R_ref, cfg = state.history, ref.leg_R_ref, ref.cfg
+        self.prob = InverseProblem(scene, True, state.a1, state.ah, scene.gravity, h, R_ref, co.c0, cfg, p, R)
+
+    def solution(self, x):
+        xa, xl = self.prob.split(x)
+        prob = self.prob.problem(xa)
+        return prob, prob.pose(self.prob.xp), xl, self.prob.actuators(xa)
+
+    def relative_unknowns(self, prob, p, R, nodes, a):
+        """Leg unknowns as in `_Forward`; actuators relative to this step's values."""
+        xa_prev = (self.state.a1 - a) / self.prob.sc.length
+        x_rel = _inverse_unknowns(prob.layout, prob.sc, nodes, jnp.zeros_like(a))
+        return x_rel, _inverse_unknowns(prob.layout, prob.sc, self.state.nodes, xa_prev)
+
+
+def step(scene, state: StepState, t, path=None):
+    """Advance one time step to time ``t``; returns (new state, output). With a ``path``
+    (`signals.PosePath`) the end follows it and the actuator values are solved for (the state
+    must then come from ``initial_step_state(..., inverse=True)``)."""
     s = scene.solver
     co = _coefficients(scene)
-    prob, a, adot = _problem(scene, state, t, co)
+    form = _Forward(scene, state, t, co) if path is None else _Inverse(scene, state, t, co, path)
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
-    x, jac, stats = newton.solve(
-        prob.residual, prob.jacobian, state.jac, s.newton, newton.with_restart(guess, x1, ~state.has_jac)
-    )
-    xp, xl = prob.split(x)
+    start = newton.with_restart(guess, x1, ~state.has_jac)
+    x, jac, stats = newton.solve(form.prob.residual, form.prob.jacobian, state.jac, s.newton, start)
+    prob, body, xl, a = form.solution(x)
     _, tips, nodes, stages = prob.legs(xl, return_stages=True)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co, h, k, scene.effects, nd, st, zp)  # noqa: E731
     z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
-    body = prob.pose(xp)
     memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co)
     p, R = scene.end.output_pose(body, tips)
-    planar = scene.effects.planar
     # Unknowns of this step and the last, relative to this step's rotations, so that the next
     # step's extrapolation compares like with like.
-    x_rel = prob.unknowns(scene.end.pose_unknowns(p, R, p, R, planar, prob.sc), nodes)
-    x_prev_rel = prob.unknowns(scene.end.previous_pose_unknowns(prob.cfg, p, R, planar, prob.sc), state.nodes)
+    x_rel, x_prev_rel = form.relative_unknowns(prob, p, R, nodes, a)
     new_state = StepState(
         nodes=nodes,
         z_prev=z,
         history=history,
         memory=memory,
         a1=a,
-        ah=co.c1 * a + co.c2 * state.a1 + co.d1 * adot,
+        ah=co.c1 * a + co.c2 * state.a1 + co.d1 * (co.c0 * a + state.ah),
         unknowns=jax.lax.stop_gradient(jnp.stack([x_rel, x_prev_rel])),
         jac=jax.lax.stop_gradient(jac),
         has_jac=jnp.asarray(True),
     )
     energy = _rods_energy(scene, prob, nodes, z) + end_energy
-    out = StepOutput(position=p, rotation=R, actuators=a, positions=nodes[:, :: s.refine, 0:3], energy=energy, stats=stats)
+    out = StepOutput(
+        position=p,
+        rotation=R,
+        actuators=a,
+        positions=nodes[:, :: s.refine, 0:3],
+        base_wrenches=jnp.stack([nodes[:, 0, 12:15], nodes[:, 0, 15:18]], axis=1),
+        energy=energy,
+        stats=stats,
+    )
     return new_state, out
 
 
 def rest_energy(scene, state: StepState, static: StaticSolution):
     """Total energy of the initial rest state (rods' elastic energy, weights' and loads' potential)."""
     co = _coefficients(scene)
-    prob, _, _ = _problem(scene, state, jnp.zeros(()), co)
+    prob = _problem(scene, state, co, state.a1, jnp.zeros(()))
     return _rods_energy(scene, prob, state.nodes, state.z_prev) + scene.end.rest_energy(
         prob.cfg, state.memory, static.nodes[:, -1]
     )

@@ -20,6 +20,7 @@ class StaticSolution(eqx.Module):
     nodes: jnp.ndarray  # (n, N+1, 18)
     unknowns: jnp.ndarray
     stats: newton.Stats
+    actuators: jnp.ndarray  # (n_act,) actuator values
 
 
 def solve_static(scene, t=0.0) -> StaticSolution:
@@ -55,4 +56,4 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     xp, xl = prob1.split(x)
     _, tips, nodes = prob1.legs(xl)
     p, R = end.output_pose(prob1.pose(xp), tips)
-    return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats)
+    return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=a)
