@@ -131,7 +131,9 @@ def cmd_inverse(args) -> int:
     except TableError as e:
         raise SceneError(f"--path: {e}") from None
     if t_path[0] > 0.0:
-        raise SceneError(f"--path: {args.path}: the path starts at t = {t_path[0]} s; it must start at t = 0 (the robot's rest pose)")
+        raise SceneError(
+            f"--path: {args.path}: the path starts at t = {t_path[0]} s; it must start at t = 0 (the robot's rest pose)"
+        )
     if args.duration is None:
         scene = with_solver(scene, duration=float(t_path[-1]))
     elif args.duration > t_path[-1] + 1e-12:
@@ -148,7 +150,9 @@ def cmd_inverse(args) -> int:
         if e.partial is not None:
             outputs.write_inverse(out, e.partial, _actuator_forces(scene, e.partial))
         outputs.write_json(out / "summary.json", summary)
-        raise ConvergenceError(f"inverse dynamics: {e} (the path may leave the workspace there)", e.time, e.residual, e.reason) from None
+        raise ConvergenceError(
+            f"inverse dynamics: {e} (the path may leave the workspace there)", e.time, e.residual, e.reason
+        ) from None
     forces = _actuator_forces(scene, traj)
     outputs.write_inverse(out, traj, forces)
     it = np.asarray(traj.iterations)
@@ -182,8 +186,15 @@ def cmd_inverse(args) -> int:
             else rep["failure"]
         )
         feas = summary["feasibility"]
-        limits = "within limits" if feas["feasible"] else "LIMITS EXCEEDED: " + "; ".join(
-            f"{v['what']} ({v['worst']:.3g} vs {v['limit']})" for v in feas["violations"] if v.get("severity", "error") == "error"
+        limits = (
+            "within limits"
+            if feas["feasible"]
+            else "LIMITS EXCEEDED: "
+            + "; ".join(
+                f"{v['what']} ({v['worst']:.3g} vs {v['limit']})"
+                for v in feas["violations"]
+                if v.get("severity", "error") == "error"
+            )
         )
         print(
             f"{scene.name}: {len(it)} steps in {timings['run_s']:.3f} s after {timings['compile_s']:.1f} s compile "

@@ -44,7 +44,9 @@ def path_errors(path: PosePath, traj: Trajectory) -> dict:
         amp = np.linalg.norm(want[:, :2] - want[:1, :2], axis=1).max()
     else:
         dp = p - want[:, :3]
-        rel = jax.vmap(lambda a, b: rotation_vector(transpose_matmul(exp_map(a), exp_map(b))))(jnp.asarray(want[:, 3:]), jnp.asarray(rv))
+        rel = jax.vmap(lambda a, b: rotation_vector(transpose_matmul(exp_map(a), exp_map(b))))(
+            jnp.asarray(want[:, 3:]), jnp.asarray(rv)
+        )
         ang = np.linalg.norm(np.asarray(rel), axis=1)
         amp = np.linalg.norm(want[:, :3] - want[:1, :3], axis=1).max()
     err = np.linalg.norm(dp, axis=1)
@@ -61,4 +63,3 @@ def path_errors(path: PosePath, traj: Trajectory) -> dict:
 def replay(scene, traj: Trajectory, **kwargs) -> Trajectory:
     """Forward dynamics of ``scene`` driven by ``traj``'s actuator values (`simulate` kwargs)."""
     return simulate(with_actuator_table(scene, traj.t, traj.actuators), **kwargs)
-

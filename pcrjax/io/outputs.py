@@ -210,7 +210,13 @@ def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str):
     ax[0].grid(alpha=0.3)
     ax[0].set_title("platform path")
     fa, aunit = _scale(actuators - actuators[0])
-    _time_series(ax[1], t, (actuators - actuators[0]) * fa, [f"a{k + 1} − a{k + 1}(0)" for k in range(actuators.shape[1])], f"actuators [{aunit}]")
+    _time_series(
+        ax[1],
+        t,
+        (actuators - actuators[0]) * fa,
+        [f"a{k + 1} − a{k + 1}(0)" for k in range(actuators.shape[1])],
+        f"actuators [{aunit}]",
+    )
     ax[1].set_title("actuator trajectories")
     for k, c in ((i, "tab:blue"), (j, "tab:orange")):
         ax[2].plot(t, d[:, k] * f, color=c, lw=2.5, label=f"{'xyz'[k]} prescribed")

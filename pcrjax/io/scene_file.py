@@ -39,7 +39,7 @@ from ..physics.rod import DiagonalDamping, Effects, Rod, TauDamping
 from ..robots.ends import FreeTip, RigidPlatform
 from ..robots.legs import Legs
 from ..robots.scene import Scene
-from ..robots.signals import ActuatorLimits, KINDS, Actuation, Load
+from ..robots.signals import KINDS, Actuation, ActuatorLimits, Load
 from .tables import TableError, read_table
 
 LOAD_COLUMNS = ("t_s", "fx_N", "fy_N", "fz_N", "mx_Nm", "my_Nm", "mz_Nm")

@@ -49,7 +49,9 @@ def stewart_gough_circle(p0, rv0, radius=5e-3, lead=0.5, period=2.0, tilt=np.deg
     phase = 2.0 * np.pi * np.clip(t - lead, 0.0, None) / period
     x, y = r * np.cos(phase), r * np.sin(phase)
     wob = tilt * _smooth(t / lead)
-    rv = np.stack([rv0[0] + wob * np.sin(phase), rv0[1] - wob * np.cos(phase) + tilt * _smooth(t / lead), np.full_like(t, rv0[2])], axis=1)
+    rv = np.stack(
+        [rv0[0] + wob * np.sin(phase), rv0[1] - wob * np.cos(phase) + tilt * _smooth(t / lead), np.full_like(t, rv0[2])], axis=1
+    )
     return t, np.concatenate([np.stack([p0[0] + x, p0[1] + y, np.full_like(t, p0[2])], axis=1), rv], axis=1)
 
 

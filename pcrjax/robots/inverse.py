@@ -34,9 +34,13 @@ def check_square(scene):
     P = scene.end.pose_size(scene.effects)
     n = scene.actuator_values(jnp.zeros(())).shape[0]
     if not scene.legs.actuated or P == 0:
-        raise SceneError(f"{scene.name}: inverse dynamics needs a platform moved by actuated legs; robot '{scene.robot}' has none")
+        raise SceneError(
+            f"{scene.name}: inverse dynamics needs a platform moved by actuated legs; robot '{scene.robot}' has none"
+        )
     if P != n:
-        raise SceneError(f"{scene.name}: inverse dynamics needs as many actuators as platform pose unknowns ({n} actuators, {P} pose unknowns)")
+        raise SceneError(
+            f"{scene.name}: inverse dynamics needs as many actuators as platform pose unknowns ({n} actuators, {P} pose unknowns)"
+        )
 
 
 class InverseProblem:
