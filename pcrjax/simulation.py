@@ -208,12 +208,12 @@ def rollout(scene, active_steps=None, path=None) -> Trajectory:
 
 
 @eqx.filter_jit
-def _start(scene, path):
+def _start(scene, path=None):
     return _initial(scene, path)
 
 
 @eqx.filter_jit
-def _advance(scene, state, i0, count: int, path):
+def _advance(scene, state, i0, count: int, path=None):
     return _scan_steps(scene, state, i0, count, path=path)
 
 
