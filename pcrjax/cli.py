@@ -255,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_solver_overrides(p)
     p.set_defaults(func=cmd_inverse)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
-    p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele"], help="benchmark case")
+    p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele", "inverse"], help="benchmark case")
     p.add_argument("--nodes", help="comma-separated N values for RK4; default per case")
     p.add_argument("--euler-nodes", help="comma-separated N values for explicit Euler (empty string: none); default per case")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
