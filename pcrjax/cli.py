@@ -204,6 +204,64 @@ def cmd_inverse(args) -> int:
     return 0
 
 
+def cmd_design(args) -> int:
+    import jax.numpy as jnp
+
+    from . import design
+    from .io import outputs
+    from .robots.limits import feasibility
+
+    if args.goal != "move":
+        raise SceneError(f"--goal {args.goal}: not available in this version (available: move)")
+    scene = _scene(args)
+    planar = scene.effects.planar
+    dp = [args.dx, args.dy, 0.0 if planar else args.dz]
+    dtheta = [0.0, 0.0, args.dtheta] if planar else [args.drx, args.dry, args.dtheta]
+    out = _out_dir(args.out)
+    settle = args.time if args.settle is None else args.settle
+    move, scene = design.plan_move(scene, dp, dtheta, args.time, settle, args.knots)
+    log = (lambda *_: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    res = design.design_move(scene, move, method=args.method, iterations=args.iterations, log=log)
+    c = res["coefficients"]
+    zero = jnp.zeros_like(c)
+    runs = {}
+    for label, coeffs in (("plain", zero), ("designed", c)):
+        for grid, finer in (("same_grid", False), ("finer_grid", True)):
+            runs[(label, grid)] = design.verify(scene, move, coeffs, finer=finer)
+    t = np.asarray(runs[("designed", "same_grid")].t)
+    for label, coeffs in (("plain", zero), ("designed", c)):
+        a = np.asarray(move.actuators(t, coeffs))
+        name = "actuators.csv" if label == "designed" else "plain_actuators.csv"
+        outputs.write_columns(
+            out / name, ["t_s"] + [f"a{i + 1}" for i in range(a.shape[1])], np.concatenate([t[:, None], a], axis=1)
+        )
+    summary = {
+        "settings": outputs.scene_settings(scene),
+        "goal": {"kind": "move", "displacement_m": dp, "rotation_rad": dtheta, "time_s": args.time, "settle_s": settle},
+        "method": res["method"],
+        "objective_m2": res["objective"],
+        "compile_s": res["compile_s"],
+        "optimise_s": res["optimise_s"],
+        "coefficients": np.asarray(c).tolist(),
+    }
+    for (label, grid), traj in runs.items():
+        summary.setdefault(label, {})[grid] = design.settling(traj, move)
+    d = runs[("designed", "same_grid")]
+    summary["feasibility"] = feasibility(scene, d.t, d.actuators, d.base_wrenches)
+    ratio = summary["plain"]["finer_grid"]["residual_vibration_m"] / summary["designed"]["finer_grid"]["residual_vibration_m"]
+    summary["vibration_reduction_finer_grid"] = ratio
+    outputs.write_json(out / "summary.json", summary)
+    outputs.plot_design(out / "design.png", {k: runs[k] for k in runs}, move, f"{scene.name}: designed move")
+    if not args.quiet:
+        print(
+            f"{scene.name}: residual vibration {summary['plain']['finer_grid']['residual_vibration_m']:.3g} m (plain) -> "
+            f"{summary['designed']['finer_grid']['residual_vibration_m']:.3g} m (designed), {ratio:.3g}x smaller on the finer "
+            f"grid; {len(res['objective']) - 1} {res['method']} iterations in {res['optimise_s']:.1f} s after {res['compile_s']:.1f} s "
+            f"compile; {'within limits' if summary['feasibility']['feasible'] else 'LIMITS EXCEEDED'}; wrote {out}/"
+        )
+    return 0
+
+
 def _actuator_forces(scene, traj):
     """(T, legs) base force along each leg's axis (N, positive pulling the rod out)."""
     d = np.asarray(scene.legs.base_rotation)[:, :, 2]
@@ -254,6 +312,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar or closing line")
     _add_solver_overrides(p)
     p.set_defaults(func=cmd_inverse)
+    p = sub.add_parser(
+        "design",
+        help="trajectory design by gradient: a point-to-point platform move without residual vibration; writes "
+        "actuators.csv, plain_actuators.csv, summary.json and design.png",
+    )
+    p.add_argument("scene")
+    p.add_argument("--goal", default="move", help="move (point-to-point, least residual vibration)")
+    for key, unit in (("dx", "m"), ("dy", "m"), ("dz", "m"), ("drx", "rad"), ("dry", "rad"), ("dtheta", "rad (about z)")):
+        p.add_argument(f"--{key}", type=float, default=0.0, help=f"platform move {key[1:]} [{unit}]")
+    p.add_argument("--time", type=float, required=True, help="duration of the move (s)")
+    p.add_argument("--settle", type=float, help="settling window after the move (s; default: the move's duration)")
+    p.add_argument("--knots", type=int, default=4, help="correction B-splines per actuator (default 4)")
+    p.add_argument("--method", choices=["lm", "adam"], default="lm", help="optimiser (default lm)")
+    p.add_argument("--iterations", type=int, default=8, help="optimiser iterations at most")
+    p.add_argument("--out", default="out", help="output folder (default: out)")
+    p.add_argument("--quiet", action="store_true")
+    _add_solver_overrides(p)
+    p.set_defaults(func=cmd_design)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
     p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele", "inverse"], help="benchmark case")
     p.add_argument("--nodes", help="comma-separated N values for RK4; default per case")

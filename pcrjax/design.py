@@ -24,16 +24,17 @@ from __future__ import annotations
 import dataclasses
 import time
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .errors import ConvergenceError, SceneError
 from .io.scene_file import with_solver
+from .numerics import results
+from .physics.rotations import exp_map, matmul, rotation_vector, transpose_matmul
 from .replay import with_actuator_table
 from .robots.inverse import check_square, solve_static_inverse
-from .simulation import rollout, solve_static
+from .simulation import rollout, simulate, solve_static
 
 
 def _bspline_basis(u, n_basis: int, degree: int = 5) -> np.ndarray:
@@ -91,18 +92,18 @@ class Move:
 
 def plan_move(scene, dp, dtheta, duration: float, settle: float, count: int = 4) -> tuple[Move, object]:
     """The move of the platform by ``dp`` (3,) m and rotation vector ``dtheta`` (3,) rad (planar:
-    dtheta about z only) from rest, and the scene set up for it (its duration is the move's plus
-    the settling window)."""
+    dtheta about z only) from its initial rest pose, and the scene set up for it (its duration is
+    the move's plus the settling window). The target's actuator values hold the platform there
+    under the loads at the end of the settling window (a load released at t = 0 is gone by then,
+    and the design cancels its ringing too)."""
     check_square(scene)
     if duration <= 0 or settle <= 0:
         raise SceneError(f"move duration and settling window must be > 0 (got {duration}, {settle})")
     rest = solve_static(scene)
     p1 = rest.position + jnp.asarray(dp, jnp.float64)
-    from .physics.rotations import exp_map, matmul
-
     R1 = matmul(rest.rotation, exp_map(jnp.asarray(dtheta, jnp.float64)))
-    target = jax.jit(solve_static_inverse)(scene, p1, R1)
-    if int(target.stats.result) != 0:
+    target = jax.jit(solve_static_inverse, static_argnums=3)(scene, p1, R1, None, duration + settle)
+    if int(target.stats.result) != results.SUCCESSFUL:
         raise ConvergenceError("no static equilibrium at the move's target pose (outside the workspace?)", 0.0)
     a0 = scene.actuator_values(jnp.zeros(()))
     move = Move(a0=a0, a1=target.actuators, p1=p1, R1=R1, duration=float(duration), settle=float(settle), count=int(count))
@@ -120,8 +121,6 @@ def vibration(scene, move: Move, coeffs, lever: float):
     traj = rollout(_driven(scene, move, coeffs))
     t = np.arange(scene.solver.steps + 1) * float(scene.solver.dt)
     after = t > move.duration + 0.5 * float(scene.solver.dt)
-    from .physics.rotations import exp_map, rotation_vector, transpose_matmul
-
     dp = traj.position[after] - move.p1
     dR = jax.vmap(lambda rv: rotation_vector(transpose_matmul(move.R1, exp_map(rv))))(traj.rotation_vector[after])
     return jnp.concatenate([dp, lever * jnp.linalg.norm(dR, axis=1, keepdims=True)], axis=1), traj.result
@@ -212,10 +211,4 @@ def verify(scene, move: Move, coeffs, finer: bool = True):
     if finer:
         s = scene.solver
         scene = with_solver(scene, nodes=2 * s.nodes, dt=float(s.dt) / 2.0)
-    from .simulation import simulate
-
     return simulate(_driven(scene, move, jnp.asarray(coeffs)))
-
-
-__all__ = ["Move", "correction_basis", "design_move", "plan_move", "settling", "verify", "vibration"]
-_ = eqx  # equinox types the scenes this module edits

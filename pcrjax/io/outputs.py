@@ -230,3 +230,40 @@ def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str):
     tw.set_ylabel("replay position error [m]", color="tab:green")
     ax[2].set_title("prescribed vs replayed")
     _save(fig, path, title)
+
+
+def plot_design(path: Path, runs: dict, move, title: str):
+    """A designed move against the plain one: the platform's distance to the target over time
+    (log scale, on the design's grid and the finer check), and the actuator values."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(13, 4.5))
+    styles = {"plain": "tab:red", "designed": "tab:blue"}
+    for (label, grid), traj in runs.items():
+        t = np.asarray(traj.t)
+        err = np.linalg.norm(np.asarray(traj.position) - np.asarray(move.p1), axis=1)
+        ax[0].semilogy(t * 1e3, np.maximum(err, 1e-15), color=styles[label], ls="-" if grid == "same_grid" else "--",
+                       label=f"{label}, {grid.replace('_', ' ')}")  # fmt: skip
+    ax[0].axvline(move.duration * 1e3, color="0.5", lw=0.8)
+    ax[0].axhline(1e-6, color="0.5", lw=0.8, ls=":")
+    ax[0].set_xlabel("t [ms]")
+    ax[0].set_ylabel("distance to target [m]")
+    ax[0].legend()
+    ax[0].grid(alpha=0.3)
+    ax[0].set_title("platform: residual vibration after the move (dotted: 1 µm)")
+    for label in ("plain", "designed"):
+        traj = runs[(label, "same_grid")]
+        a = np.asarray(traj.actuators) - np.asarray(traj.actuators)[0]
+        f, unit = _scale(a)
+        for i in range(a.shape[1]):
+            ax[1].plot(np.asarray(traj.t) * 1e3, a[:, i] * f, color=f"C{i}", ls="-" if label == "designed" else ":",
+                       label=f"a{i + 1} {label}")  # fmt: skip
+    ax[1].set_xlabel("t [ms]")
+    ax[1].set_ylabel(f"actuator − rest [{unit}]")
+    ax[1].legend(ncol=2, fontsize=8)
+    ax[1].grid(alpha=0.3)
+    ax[1].set_title("actuator trajectories")
+    _save(fig, path, title)

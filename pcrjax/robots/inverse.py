@@ -98,17 +98,17 @@ def _geodesic(p0, R0, p1, R1, s):
     return p0 + s * (p1 - p0), matmul(R0, exp_map(s * rotation_vector(transpose_matmul(R0, R1))))
 
 
-def solve_static_inverse(scene, p, R, stages: int | None = None) -> StaticSolution:
+def solve_static_inverse(scene, p, R, stages: int | None = None, t=0.0) -> StaticSolution:
     """Actuator values and legs that hold the end at pose (p, R) in static equilibrium under the
-    loads at t = 0. Starts from the forward static solution at the scene's actuator values and
+    loads at time ``t``. Starts from the forward static solution at the scene's actuator values and
     moves the prescribed pose from there to (p, R) in ``stages`` continuation steps (default
     ``solver.continuation``), each a Newton solve from the last."""
     check_square(scene)
     s = scene.solver
     legs, end = scene.legs, scene.end
     n = legs.count
-    t = jnp.zeros(())
-    fwd = solve_static(scene)
+    t = jnp.asarray(t, jnp.float64)
+    fwd = solve_static(scene, t)
     a0 = fwd.actuators
     F, M = end.load(t)
     cfg = end.static_config(legs, a0, F, M, end.weight(scene.effects, scene.gravity), jnp.asarray(1.0))
