@@ -133,35 +133,48 @@ def _initial(scene, path=None):
     return static, dynamics.initial_step_state(scene, static, inverse=path is not None)
 
 
-def _scan_steps(scene, state, i0, count: int, active=None, path=None):
+def _scan_steps(scene, state, i0, count: int, active=None, path=None, checkpoint: int | None = None):
+    """``count`` steps from ``state`` (the first at step i0 + 1) as one `lax.scan`. ``active``:
+    steps past it hold the state and output zeros. ``checkpoint``: scan chunks of that many
+    steps under `jax.checkpoint`, so that reverse mode stores one state per chunk and one
+    chunk's intermediates at a time (memory ~ count/checkpoint + checkpoint steps, for about
+    one more forward pass); a partial last chunk holds past ``count``."""
+
     def advance(st, i):
         t = (i0 + i + 1) * scene.solver.dt
         st, out = dynamics.step(scene, st, t, path)
-        return st, (
-            out.position,
-            rotation_vector(out.rotation),
-            out.positions,
-            out.stats,
-            out.actuators,
-            out.energy,
-            out.base_wrenches,
-        )
+        return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy, out.base_wrenches)
 
-    steps = jnp.arange(count)
+    if checkpoint:
+        size = max(1, min(int(checkpoint), count))
+        chunks = -(-count // size)
+        if chunks * size > count and active is None:
+            active = count
+
     if active is None:
-        return jax.lax.scan(advance, state, steps)
-    # The step is traced once, to a jaxpr whose outputs' shapes the held steps copy (eval_shape of
-    # `advance` would trace the whole step a second time).
-    i = jnp.zeros((), steps.dtype)
-    advance_jaxpr, consts = jax.closure_convert(advance, state, i)
-    out_shape = jax.eval_shape(advance_jaxpr, state, i, *consts)[1]
+        step_fn = advance
+    else:
+        # The step is traced once, to a jaxpr whose outputs' shapes the held steps copy (eval_shape
+        # of `advance` would trace the whole step a second time).
+        i = jnp.zeros((), jnp.int32)
+        advance_jaxpr, consts = jax.closure_convert(advance, state, i)
+        out_shape = jax.eval_shape(advance_jaxpr, state, i, *consts)[1]
 
-    def hold(st, i):  # past the active steps: state kept, zero outputs, no solve
-        return st, jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), out_shape)
+        def hold(st, i):  # past the active steps: state kept, zero outputs, no solve
+            return st, jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), out_shape)
 
-    return jax.lax.scan(
-        lambda st, i: jax.lax.cond(i < active, lambda s, j: advance_jaxpr(s, j, *consts), hold, st, i), state, steps
-    )
+        def step_fn(st, i):
+            return jax.lax.cond(i < active, lambda s, j: advance_jaxpr(s, j, *consts), hold, st, i)
+
+    if not checkpoint:
+        return jax.lax.scan(step_fn, state, jnp.arange(count, dtype=jnp.int32))
+
+    @jax.checkpoint
+    def chunk(st, c):
+        return jax.lax.scan(step_fn, st, c * size + jnp.arange(size, dtype=jnp.int32))
+
+    st, outs = jax.lax.scan(chunk, state, jnp.arange(chunks, dtype=jnp.int32))
+    return st, jax.tree.map(lambda a: a.reshape((chunks * size,) + a.shape[2:])[:count], outs)
 
 
 def _assemble(scene, static, state0, outs, steps):
@@ -184,7 +197,7 @@ def _assemble(scene, static, state0, outs, steps):
     )
 
 
-def rollout(scene, active_steps=None, path=None) -> Trajectory:
+def rollout(scene, active_steps=None, path=None, checkpoint: int | None = None) -> Trajectory:
     """Simulate ``scene.solver.steps`` steps from rest at the static equilibrium; pure function.
 
     ``path`` (`PosePath`): inverse dynamics; the platform follows it from rest at its first pose
@@ -193,6 +206,9 @@ def rollout(scene, active_steps=None, path=None) -> Trajectory:
     ``active_steps`` (an integer, may be traced): simulate only the first ``active_steps`` steps;
     the later entries of the trajectory are zeros and cost no solve. One compiled program then
     serves every shorter horizon (a fit that lengthens its window step by step).
+
+    ``checkpoint`` (steps per chunk): reverse-mode gradients through long rollouts store one
+    state per chunk instead of every step's intermediates (`jax.checkpoint`); e.g. ~sqrt(steps).
 
     No convergence check is raised here (it cannot be, under `jit`/`grad`): inspect
     ``.converged`` or use `simulate`.
@@ -203,7 +219,7 @@ def rollout(scene, active_steps=None, path=None) -> Trajectory:
     if path is not None:
         inverse.check_square(scene)
     static, state = _initial(scene, path)
-    _, outs = _scan_steps(scene, state, 0, scene.solver.steps, active_steps, path)
+    _, outs = _scan_steps(scene, state, 0, scene.solver.steps, active_steps, path, checkpoint)
     return _assemble(scene, static, state, outs, scene.solver.steps)
 
 

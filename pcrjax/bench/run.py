@@ -1,4 +1,4 @@
-"""`pcrjax bench cantilever|stewart_gough|triskele|inverse`: the cost of accuracy (figures, never assertions).
+"""`pcrjax bench cantilever|stewart_gough|triskele|inverse|design`: the cost of accuracy (figures, never assertions).
 
 For each case, dt and (integrator, N): wall time per step after compilation, real-time factor
 (simulated over wall seconds), compile time (cold, or a load from the persistent cache), Newton
@@ -7,7 +7,7 @@ over time; ``rel err``: over the reference's largest displacement), the internal
 (nodes x shooting segments) and the XLA:CPU kernels one RK4/Euler node step runs
 (`kernels.node_step_kernels`): on this backend each kernel costs a fixed overhead, so this count
 is the lever on per-step time. ``--noise`` (Stewart-Gough) adds thesis Tables 4.3-4.4; ``--gradient`` the cost of a reverse-mode
-gradient through a rollout (`gradient.py`); ``inverse`` times inverse dynamics (`inverse.py`).
+gradient through a rollout (`gradient.py`); ``inverse`` times inverse dynamics (`inverse.py`), ``design`` trajectory design (`design.py`).
 """
 
 from __future__ import annotations
@@ -122,10 +122,15 @@ def _noise_table(nodes, duration):
 def run_bench(args) -> dict:
     """Print (and with ``--json`` write) the benchmark of ``args.case``."""
     out: dict = {"case": args.case, "rows": []}
-    if args.case == "inverse":
-        from .inverse import bench_inverse
+    if args.case in ("inverse", "design"):
+        if args.case == "inverse":
+            from .inverse import bench_inverse
 
-        out["rows"] = bench_inverse(args.nodes, args.duration)
+            out["rows"] = bench_inverse(args.nodes, args.duration)
+        else:
+            from .design import bench_design
+
+            out.update(bench_design(horizons=[int(h) for h in args.horizons.split(",")]))
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(out, f, indent=2)
