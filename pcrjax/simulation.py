@@ -143,7 +143,15 @@ def _scan_steps(scene, state, i0, count: int, active=None, path=None, checkpoint
     def advance(st, i):
         t = (i0 + i + 1) * scene.solver.dt
         st, out = dynamics.step(scene, st, t, path)
-        return st, (out.position, rotation_vector(out.rotation), out.positions, out.stats, out.actuators, out.energy, out.base_wrenches)
+        return st, (
+            out.position,
+            rotation_vector(out.rotation),
+            out.positions,
+            out.stats,
+            out.actuators,
+            out.energy,
+            out.base_wrenches,
+        )
 
     if checkpoint:
         size = max(1, min(int(checkpoint), count))

@@ -88,8 +88,10 @@ def _horizons(horizons, nodes: int, dt: float) -> list[dict]:
 
 
 def bench_design(dt: float = 5e-5, iterations: int = 6, horizons=(100, 1000, 10000), nodes: int = 5) -> dict:
-    print("Design of a 5 um, 10 ms Triskele move (N 10, dt %.3g s): LM (forward-mode Jacobian) vs Adam (reverse mode)" % dt)
-    print(f"{'method':<6}{'iters':>6}{'to 1e-4':>10}{'final/plain':>12}{'compile s':>11}{'optimise s':>12}{'plain vib m':>13}{'designed m':>13}")
+    print(f"Design of a 5 um, 10 ms Triskele move (N 10, dt {dt:.3g} s): LM (forward-mode Jacobian) vs Adam (reverse mode)")
+    print(
+        f"{'method':<6}{'iters':>6}{'to 1e-4':>10}{'final/plain':>12}{'compile s':>11}{'optimise s':>12}{'plain vib m':>13}{'designed m':>13}"
+    )
     out = {"optimisers": _optimisers(dt, iterations)}
     print("'designed m': largest residual vibration of the designed move rerun at 2N nodes and dt/2.")
     print(f"\nReverse-mode gradient of a rollout scalar vs the forward rollout (Triskele N {nodes}, dt 5e-4 s)")
