@@ -130,7 +130,7 @@ def _initial(scene, path=None):
         static = statics.solve_static(scene)  # loads and actuators at t = 0
     else:
         static = inverse.solve_static_inverse(scene, *path.pose(jnp.zeros(()), scene.end.reference_position[2]))
-    return static, dynamics.initial_step_state(scene, static, inverse=path is not None)
+    return static, dynamics.initial_step_state(scene, static, inverse_dynamics=path is not None)
 
 
 def _scan_steps(scene, state, i0, count: int, active=None, path=None, checkpoint: int | None = None):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pcrjax import cli, design, load_scene, with_solver
+from pcrjax.robots.limits import feasibility
 
 NO_LOAD = (jnp.zeros(3), jnp.zeros(3))
 
@@ -79,6 +80,9 @@ def test_designed_move_is_100x_quieter_on_a_finer_grid():
     move, scene = design.plan_move(sc, [5e-6, 0.0, 0.0], [0.0, 0.0, 0.0], 0.01, 0.02, count=4)
     res = design.design_move(scene, move, method="lm", iterations=6)
     plain = design.settling(design.verify(scene, move, jnp.zeros((4, 3))), move)
-    designed = design.settling(design.verify(scene, move, res["coefficients"]), move)
+    run = design.verify(scene, move, res["coefficients"])
+    designed = design.settling(run, move)
     print(plain, designed)
     assert designed["residual_vibration_m"] * 100 <= plain["residual_vibration_m"]
+    rep = feasibility(scene, run.t, run.actuators, run.base_wrenches)  # SLC-1730 stages: 2 mm/s
+    assert rep["feasible"], rep["violations"]

@@ -78,12 +78,15 @@ def _dyn_scene(damping):
     )
 
 
-def test_rollout_gradient_after_50_steps_length_E_tau():
+# 7: checkpointed chunks, the last one partial. Plain reverse mode through a rollout is also in the
+# default run (design's gradient test, the bench's gradient cost); here it is slow to save a compile.
+@pytest.mark.parametrize("checkpoint", [7, pytest.param(None, marks=pytest.mark.slow)])
+def test_rollout_gradient_after_50_steps_length_E_tau(checkpoint):
     scene = _dyn_scene({"tau": 2e-4})
     assert scene.solver.steps == 50
     params = {"length": scene.legs.rod.length[0], "E": scene.legs.rod.youngs_modulus[0], "tau": scene.legs.rod.damping.tau[0]}
     f = jax.jit(lambda p: pcrjax.rollout(apply(scene, p)).position[-1, 2])
-    g = jax.jit(jax.grad(f))(params)
+    g = jax.jit(jax.grad(lambda p: pcrjax.rollout(apply(scene, p), checkpoint=checkpoint).position[-1, 2]))(params)
     for k in params:
         _check(g[k], _central(f, params, k), k)
 

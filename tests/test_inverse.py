@@ -3,6 +3,7 @@ circle), rigid-strut kinematics (an independent model), the static inverse at a 
 bad input."""
 
 import json
+import re
 
 import equinox as eqx
 import jax
@@ -88,7 +89,10 @@ def test_thesis_circle_round_trip(duration, nodes):
     assert err["relative_error"] < 1e-6
     assert err["max_rotation_error_rad"] < 1e-9
     rep = feasibility(sc, inv.t, inv.actuators, inv.base_wrenches)
-    assert rep["feasible"], rep["violations"]  # the smoothed circle stays below the buckling load
+    whats = {v["what"]: v for v in rep["violations"]}
+    assert "buckling (clamped-clamped)" not in whats  # the smoothed circle stays below the buckling load
+    # but its 15.7 mm/s needs faster stages than the SLC-1730's 2 mm/s: reported with its times
+    assert whats["speed"]["worst"] > 0.002 and whats["speed"]["first_time_s"] < 0.1 and not rep["feasible"]
 
 
 def test_slow_path_agrees_with_static_inverse():
@@ -170,3 +174,17 @@ def test_cli_inverse_reports_a_path_outside_the_workspace(tmp_path, capsys):
 def test_cli_inverse_refuses_robots_without_a_platform(tmp_path, capsys):
     rc = cli.main(["inverse", "cantilever", "--path", "triskele_move", "--out", str(tmp_path / "o")])
     assert rc == 2 and "needs a platform" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "key,value,needle",
+    [("range", [0.01, -0.01], "low must be below high"), ("range", [1.0], "[low, high]"), ("max_speed", -1.0, "must be > 0")],
+)
+def test_actuator_limits_are_validated(key, value, needle):
+    import tomllib
+    from importlib import resources
+
+    d = tomllib.loads((resources.files("pcrjax") / "scenes" / "triskele.toml").read_text())
+    d["actuation"][key] = value
+    with pytest.raises(pcrjax.SceneError, match=re.escape(needle)):
+        pcrjax.scene_from_dict(d, "<test>")

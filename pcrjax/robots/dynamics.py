@@ -1,5 +1,8 @@
 """One BDF-alpha time step of any robot: extrapolated guess, Newton solve with a restart, history update.
 
+Forward dynamics solves for the end's pose under the scene's actuation; inverse dynamics
+(`inverse.py`) for the actuator values under a prescribed pose. Both share everything else.
+
 The Newton start is extrapolated linearly from the last two steps (the legs' segment rotations
 through their Cayley parameters, the platform pose through its increment, both relative to the
 last step), and the last step's Jacobian is reused. If Newton fails from the extrapolated start
@@ -16,8 +19,7 @@ import jax.numpy as jnp
 from ..numerics import bdf_alpha, newton, rod_history
 from ..numerics.rod_history import RodHistory
 from ..physics import rod as rod_physics
-from . import assembly
-from .inverse import InverseProblem
+from . import assembly, inverse
 from .statics import StaticSolution
 
 
@@ -50,9 +52,9 @@ def _coefficients(scene):
     return bdf_alpha.coefficients(s.dt, s.alpha)
 
 
-def initial_step_state(scene, static: StaticSolution, inverse: bool = False) -> StepState:
-    """Rest at the static equilibrium: rods, end and actuators at rest forever. ``inverse``: the
-    unknowns are those of inverse dynamics (actuators in place of the pose)."""
+def initial_step_state(scene, static: StaticSolution, inverse_dynamics: bool = False) -> StepState:
+    """Rest at the static equilibrium: rods, end and actuators at rest forever. With
+    ``inverse_dynamics`` the unknowns are those of inverse dynamics (actuators for the pose)."""
     s = scene.solver
     co = _coefficients(scene)
     a = static.actuators
@@ -61,7 +63,7 @@ def initial_step_state(scene, static: StaticSolution, inverse: bool = False) -> 
     memory = scene.end.rest_memory(static.position, static.rotation, co)
     lay = assembly.layout(scene, True)
     sc = assembly.scales(scene, co.c0)
-    if inverse:
+    if inverse_dynamics:
         x = _inverse_unknowns(lay, sc, nodes, jnp.zeros_like(a))
     else:
         xp = scene.end.pose_unknowns(static.position, static.rotation, static.position, static.rotation, scene.effects.planar, sc)
@@ -83,7 +85,7 @@ def _inverse_unknowns(lay, sc, nodes, xa):
     """Inverse-dynamics unknowns (`InverseProblem`) reproducing ``nodes``, with scaled actuator
     unknowns ``xa``."""
     xl = assembly.unknowns(lay, sc, jnp.zeros((0,), nodes.dtype), nodes).reshape(nodes.shape[0], lay.size)
-    return jnp.concatenate([xl, xa[:, None]], axis=1).reshape(-1)
+    return inverse.join(xa, xl)
 
 
 def _problem(scene, state: StepState, co, a, t):
@@ -124,7 +126,7 @@ class _Inverse(_Forward):
         ref = _problem(scene, state, co, state.a1, t)
         p, R = path.pose(t, ref.cfg.p_prev[2])
         h, R_ref, cfg = state.history, ref.leg_R_ref, ref.cfg
-        self.prob = InverseProblem(scene, True, state.a1, state.ah, scene.gravity, h, R_ref, co.c0, cfg, p, R)
+        self.prob = inverse.InverseProblem(scene, True, state.a1, state.ah, scene.gravity, h, R_ref, co.c0, cfg, p, R)
 
     def solution(self, x):
         xa, xl = self.prob.split(x)
@@ -141,7 +143,7 @@ class _Inverse(_Forward):
 def step(scene, state: StepState, t, path=None):
     """Advance one time step to time ``t``; returns (new state, output). With a ``path``
     (`signals.PosePath`) the end follows it and the actuator values are solved for (the state
-    must then come from ``initial_step_state(..., inverse=True)``)."""
+    must then come from ``initial_step_state(..., inverse_dynamics=True)``)."""
     s = scene.solver
     co = _coefficients(scene)
     form = _Forward(scene, state, t, co) if path is None else _Inverse(scene, state, t, co, path)

@@ -77,7 +77,7 @@ class InverseProblem:
         return X[:, self.S], X[:, : self.S]
 
     def join(self, xa, xl):
-        return jnp.concatenate([xl, xa[:, None]], axis=1).reshape(-1)
+        return join(xa, xl)
 
     def residual(self, x):
         xa, xl = self.split(x)
@@ -91,6 +91,11 @@ class InverseProblem:
         _, (junc_a, tips_a) = jax.jvp(legs, (xa,), (jnp.ones_like(xa),))  # leg i depends on a_i only
         Ja = jnp.concatenate([junc_a, tips_a], axis=1)[:, :, None]
         return prob.assemble(self.xp, tips, jnp.concatenate([Jl, Ja], axis=2), pose_columns=False)
+
+
+def join(xa, xl):
+    """The inverse unknown vector from actuator unknowns ``xa`` (n,) and leg unknowns ``xl`` (n, S)."""
+    return jnp.concatenate([xl, xa[:, None]], axis=1).reshape(-1)
 
 
 def _geodesic(p0, R0, p1, R1, s):
