@@ -106,8 +106,30 @@ def plan_move(scene, dp, dtheta, duration: float, settle: float, count: int = 4)
     if int(target.stats.result) != results.SUCCESSFUL:
         raise ConvergenceError("no static equilibrium at the move's target pose (outside the workspace?)", 0.0)
     a0 = scene.actuator_values(jnp.zeros(()))
+    _check_reachable(scene, a0, target.actuators, duration)
     move = Move(a0=a0, a1=target.actuators, p1=p1, R1=R1, duration=float(duration), settle=float(settle), count=int(count))
     return move, with_solver(scene, duration=float(duration + settle))
+
+
+def _check_reachable(scene, a0, a1, duration: float):
+    """Raise `SceneError` if no trajectory meets the actuator limits: the target outside the
+    range, or a stroke that even a constant speed cannot cover in ``duration``."""
+    lim = scene.actuation.limits if scene.actuation is not None else None
+    if lim is None:
+        return
+    a0, a1 = np.asarray(a0), np.asarray(a1)
+    for i in range(a1.shape[0]):
+        lo, hi = float(lim.low[i]), float(lim.high[i])
+        if not lo <= a1[i] <= hi:
+            raise SceneError(
+                f"the move's target needs actuator {i + 1} at {a1[i]:.6g} m, outside its range [{lo:.6g}, {hi:.6g}] m"
+            )
+        need = abs(a1[i] - a0[i]) / duration
+        if need > float(lim.max_speed[i]):
+            raise SceneError(
+                f"no trajectory moves actuator {i + 1} by {abs(a1[i] - a0[i]):.3g} m in {duration:.3g} s within its max_speed "
+                f"{float(lim.max_speed[i]):.3g} m/s (it needs at least {need:.3g} m/s on average): allow more time"
+            )
 
 
 def _driven(scene, move: Move, coeffs):

@@ -86,3 +86,11 @@ def test_designed_move_is_100x_quieter_on_a_finer_grid():
     assert designed["residual_vibration_m"] * 100 <= plain["residual_vibration_m"]
     rep = feasibility(scene, run.t, run.actuators, run.base_wrenches)  # SLC-1730 stages: 2 mm/s
     assert rep["feasible"], rep["violations"]
+
+
+def test_cli_design_refuses_a_move_no_trajectory_can_make(tmp_path, capsys):
+    # 0.5 mm in 10 ms: the SLC-1730 stages (2 mm/s) need at least 0.25 s for the actuators' stroke
+    argv = ["design", "triskele", "--dx", "5e-4", "--time", "0.01", "--nodes", "5", "--dt", "5e-4", "--out", str(tmp_path)]
+    rc = cli.main(argv + ["--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no trajectory moves actuator" in err and err.count("\n") == 1, err
