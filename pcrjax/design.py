@@ -163,9 +163,11 @@ def settling(traj, move: Move, band: float = 1e-6) -> dict:
 
 
 def design_move(scene, move: Move, *, method: str = "lm", iterations: int = 10, lever: float | None = None, log=print) -> dict:
-    """Optimise the move's correction coefficients; returns the coefficients, the objective per
-    iteration, wall times and the plain and designed vibration. ``method``: "lm"
-    (Levenberg-Marquardt, forward-mode Jacobian) or "adam" (optax, reverse-mode gradient)."""
+    """Optimise the move's correction coefficients from zero (the plain move). Returns a dict:
+    ``coefficients`` (count, n), ``objective`` (sum of squares, m^2, per iteration, the plain
+    move's first), ``compile_s``, ``optimise_s``, ``method``: "lm" (Levenberg-Marquardt,
+    forward-mode Jacobian) or "adam" (optax, reverse-mode gradient). Trial steps whose rollout
+    does not converge are rejected; a plain move that does not converge raises."""
     n = move.a0.shape[0]
     lever = float(jnp.max(jnp.linalg.norm(scene.end.attachment, axis=1))) if lever is None else lever
 
