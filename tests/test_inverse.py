@@ -95,6 +95,20 @@ def test_thesis_circle_round_trip(duration, nodes):
     assert whats["speed"]["worst"] > 0.002 and whats["speed"]["first_time_s"] < 0.1 and not rep["feasible"]
 
 
+@pytest.mark.slow
+def test_stewart_gough_circle_round_trip():
+    """The 6-DOF case: the shipped Stewart-Gough circle (5 mm, with a tilt wobble) at Till's dt."""
+    sc = with_solver(load_scene("stewart_gough"), nodes=10, dt=1.0 / 120.0, alpha=-0.2, duration=1.0)
+    t, v = read_path("stewart_gough_circle", planar=False)
+    path = PosePath.from_samples(t, v)
+    inv = pcrjax.inverse_dynamics(sc, path)
+    err = path_errors(path, replay(sc, inv))
+    print(
+        f"Stewart-Gough round trip: {err['max_position_error_m']:.3g} m, {err['relative_error']:.3g}, {err['max_rotation_error_rad']:.3g} rad"
+    )
+    assert err["relative_error"] < 1e-6 and err["max_rotation_error_rad"] < 1e-9
+
+
 def test_slow_path_agrees_with_static_inverse():
     """A 20 um move over 0.4 s, then held for 0.2 s: at the end the inverse-dynamics actuator
     values are the static inverse's at the final pose, to solver tolerance (the scaled tolerance
