@@ -11,8 +11,10 @@ shipped scenes' rest poses (their static equilibria).
   0.3 mm of the thesis's near the start and the corner and on it elsewhere (2.42 s).
 * ``triskele_move``: a 1 mm point-to-point move along x in 0.3 s (quintic smooth step, zero
   velocity and acceleration at both ends), then 0.1 s at rest.
-* ``stewart_gough_circle``: the platform centre circles 5 mm about its rest position in its
-  horizontal plane once in 2 s, after a 0.5 s smooth lead-in, with a 2-degree tilt wobble.
+* ``stewart_gough_circle``: the platform centre moves out 5 mm from its rest position in 0.5 s
+  (quintic smooth step), then circles about it in its horizontal plane, the angular speed eased
+  in over 0.5 s up to a turn in 2 s, while the platform's tilt axis follows the direction of
+  travel (up to 2 degrees).
 
 Run ``python -m pcrjax.paths.make_paths`` after changing a shipped scene's rest pose.
 """
@@ -51,15 +53,17 @@ def triskele_move(x0, y0, theta0, distance=1e-3, duration=0.3, rest=0.1, dt=1e-3
     return t, np.stack([x0 + distance * _smooth(t / duration), np.full_like(t, y0), np.full_like(t, theta0)], axis=1)
 
 
-def stewart_gough_circle(p0, rv0, radius=5e-3, lead=0.5, period=2.0, tilt=np.deg2rad(2.0), dt=1.0 / 120.0):
-    t = np.arange(0.0, lead + period + 0.5 * dt, dt)
+def stewart_gough_circle(p0, rv0, radius=5e-3, lead=0.5, ramp=0.5, period=2.0, tilt=np.deg2rad(2.0), dt=1.0 / 120.0):
+    t = np.arange(0.0, lead + ramp + period + 0.5 * dt, dt)
     r = radius * _smooth(t / lead)
-    phase = 2.0 * np.pi * np.clip(t - lead, 0.0, None) / period
+    # angular speed eased in over ``ramp`` after the lead-in: the path stays C2 (no velocity jump
+    # where the radial lead-in turns into the circle)
+    fine = np.linspace(0.0, t[-1], 20 * t.size + 1)
+    omega = 2.0 * np.pi / period * _smooth((fine - lead) / ramp)
+    phase = np.interp(t, fine, np.concatenate([[0.0], np.cumsum(0.5 * (omega[1:] + omega[:-1]) * np.diff(fine))]))
     x, y = r * np.cos(phase), r * np.sin(phase)
     wob = tilt * _smooth(t / lead)
-    rv = np.stack(
-        [rv0[0] + wob * np.sin(phase), rv0[1] - wob * np.cos(phase) + tilt * _smooth(t / lead), np.full_like(t, rv0[2])], axis=1
-    )
+    rv = np.stack([rv0[0] + wob * np.sin(phase), rv0[1] + wob * (1.0 - np.cos(phase)), np.full_like(t, rv0[2])], axis=1)
     return t, np.concatenate([np.stack([p0[0] + x, p0[1] + y, np.full_like(t, p0[2])], axis=1), rv], axis=1)
 
 
