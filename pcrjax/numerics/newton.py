@@ -86,10 +86,6 @@ class Stages(eqx.Module):
     where ``fresh[k]`` (else the previous stage's, Broyden-updated); stages marked ``fallback``
     run only while the solve is not done (converged at s = 1). The last stage has s = 1.
 
-    Stages marked ``anchor`` solve Newton's homotopy $F(x) - (1 - s) F(x_a)$ instead, where $x_a$
-    is the start of the first anchored stage of a chain: its root is $x_a$ at s = 0 and the
-    root of $F$ at s = 1, whatever $F$ is, so it needs no problem-specific homotopy.
-
     One loop, whatever the stages: the residual and the Jacobian are compiled once, not once per
     stage. Build them with `plain`, `with_restart`, `with_continuation` or `continuation_first`.
     """
@@ -99,11 +95,10 @@ class Stages(eqx.Module):
     chain: jnp.ndarray  # (K,) bool
     fresh: jnp.ndarray  # (K,) bool
     fallback: jnp.ndarray  # (K,) bool
-    anchor: jnp.ndarray  # (K,) bool
 
 
 def _stages(rows, x0):
-    s, starts, chain, fresh, fallback, anchor = zip(*[row + (False,) * (6 - len(row)) for row in rows], strict=True)
+    s, starts, chain, fresh, fallback = zip(*rows, strict=True)
     stack = lambda v, dt: jnp.stack([jnp.asarray(a, dt) for a in v])  # noqa: E731
     return Stages(
         stack(s, x0.dtype),
@@ -111,7 +106,6 @@ def _stages(rows, x0):
         stack(chain, bool),
         stack(fresh, bool),
         stack(fallback, bool),
-        stack(anchor, bool),
     )
 
 
@@ -120,13 +114,10 @@ def plain(x0, need_jacobian=True) -> Stages:
     return _stages([(1.0, x0, False, need_jacobian, False)], x0)
 
 
-def with_restart(x0, x_restart, need_jacobian=True, homotopy: int = 0) -> Stages:
+def with_restart(x0, x_restart, need_jacobian=True) -> Stages:
     """A solve from ``x0``, and if it fails, again from ``x_restart`` with a fresh Jacobian (a time
-    step: from the extrapolated guess, then from the previous step's solution); if that fails
-    too, Newton's homotopy from ``x_restart`` in ``homotopy`` stages (none if 0)."""
-    rows = [(1.0, x0, False, need_jacobian, False), (1.0, x_restart, False, True, True)]
-    rows += [((k + 1) / homotopy, x_restart, k > 0, k == 0, True, True) for k in range(homotopy)]
-    return _stages(rows, x0)
+    step: from the extrapolated guess, then from the previous step's solution)."""
+    return _stages([(1.0, x0, False, need_jacobian, False), (1.0, x_restart, False, True, True)], x0)
 
 
 def with_continuation(x0, n: int, need_jacobian=True) -> Stages:
@@ -150,7 +141,6 @@ class _State(eqx.Module):
     k: jnp.ndarray  # stage
     x: jnp.ndarray
     r: jnp.ndarray
-    r_anchor: jnp.ndarray  # F at the anchored chain's start (`Stages.anchor`)
     nrm: jnp.ndarray
     jac: Jacobian
     need: jnp.ndarray  # refresh the Jacobian before the next direction
@@ -184,7 +174,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     false, zero = jnp.asarray(False), jnp.asarray(0)
     inf = jnp.asarray(jnp.inf, x0.dtype)
     init = _State(
-        k=zero, x=x0, r=jnp.zeros(n, x0.dtype), r_anchor=jnp.zeros(n, x0.dtype), nrm=inf, jac=jac0, need=stages.fresh[0], fresh=false, dx=jnp.zeros(n, x0.dtype),
+        k=zero, x=x0, r=jnp.zeros(n, x0.dtype), nrm=inf, jac=jac0, need=stages.fresh[0], fresh=false, dx=jnp.zeros(n, x0.dtype),
         lam=jnp.asarray(0.0, x0.dtype), it=zero, total_it=zero, nj=zero, evals=zero, started=false, gave_up=false,
         trial_finite=jnp.asarray(True), finished=false,
     )  # fmt: skip
@@ -201,10 +191,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
             lambda: (jac, fresh, st.nj),
         )
         dx = jnp.where(new_dir, -jac.solve(r), dx)
-        r_raw = fn(x + lam * dx, s)
-        anchored = stages.anchor[st.k]
-        r_anchor = jnp.where(anchored & ~started & ~stages.chain[st.k], r_raw, st.r_anchor)
-        r_t = r_raw - jnp.where(anchored, 1.0 - s, 0.0) * r_anchor
+        r_t = fn(x + lam * dx, s)
         nrm_t = _norm(r_t)
         finite = jnp.isfinite(nrm_t)
         ok = (nrm_t <= (1.0 - 1e-4 * lam) * nrm) & finite
@@ -235,7 +222,6 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
             k=jnp.where(advance, k_next, st.k),
             x=jnp.where(advance & ~stages.chain[k_next], stages.starts[k_next], x_new),
             r=jnp.where(move, r_t, r),
-            r_anchor=r_anchor,
             nrm=jnp.where(advance, jnp.inf, nrm_new),
             jac=jac,
             need=jnp.where(advance, stages.fresh[k_next] | need_new, need_new),

@@ -7,9 +7,7 @@ The Newton start is extrapolated linearly from the last two steps (the legs' seg
 through their Cayley parameters, the platform pose through its increment, both relative to the
 last step), and the last step's Jacobian is reused. If Newton fails from the extrapolated start
 (e.g. under-damped high modes flipping sign each step), it is retried from the last step's
-solution with a fresh Jacobian, and if that fails too (a large, fast motion per step: the
-undamped 2 N cantilever release at dt 5 ms moves its tip 55 mm a step), by Newton's homotopy
-from the last step's solution (`newton.Stages`), which needs no problem-specific path.
+solution with a fresh Jacobian.
 """
 
 from __future__ import annotations
@@ -23,8 +21,6 @@ from ..numerics.rod_history import RodHistory
 from ..physics import rod as rod_physics
 from . import assembly, inverse
 from .statics import StaticSolution
-
-HOMOTOPY_STAGES = 8  # Newton-homotopy stages of a step's last fallback
 
 
 class StepState(eqx.Module):
@@ -153,7 +149,7 @@ def step(scene, state: StepState, t, path=None):
     form = _Forward(scene, state, t, co) if path is None else _Inverse(scene, state, t, co, path)
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
-    start = newton.with_restart(guess, x1, ~state.has_jac, homotopy=HOMOTOPY_STAGES)
+    start = newton.with_restart(guess, x1, ~state.has_jac)
     x, jac, stats = newton.solve(form.prob.residual, form.prob.jacobian, state.jac, s.newton, start)
     prob, body, xl, a = form.solution(x)
     _, tips, nodes, stages = prob.legs(xl, return_stages=True)
