@@ -19,12 +19,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 import pcrjax
 from pcrjax import SceneError, scene_from_dict
 from pcrjax.io.scene_file import read_toml, scene_path
 from pcrjax.physics.rod import TauDamping
+from pcrjax.physics.rotations import exp_map
 
 from .recording import Recording, RecordingError
 
@@ -99,9 +101,12 @@ def apply(scene, params: dict):
 
 def planar_pose(scene, traj):
     """(T, 3) = x, y, theta of the platform (z-rotation), or of a rod's tip in its x-z bending
-    plane (y_cam = z, theta = -rotation about y: counter-clockwise seen with z up)."""
+    plane: y_cam = z and theta the angle of the tip's tangent d3 from +x towards +z (what a
+    marker on the tip shows). The tip frame's rotation vector has no such component: a rod
+    along x is the reference frame turned half a turn about an axis in the x-z plane."""
     if is_rod(scene):
-        return jnp.stack([traj.position[:, 0], traj.position[:, 2], -traj.rotation_vector[:, 1]], axis=1)
+        d3 = jax.vmap(exp_map)(traj.rotation_vector)[:, :, 2]
+        return jnp.stack([traj.position[:, 0], traj.position[:, 2], jnp.arctan2(d3[:, 2], d3[:, 0])], axis=1)
     return jnp.stack([traj.position[:, 0], traj.position[:, 1], traj.rotation_vector[:, 2]], axis=1)
 
 

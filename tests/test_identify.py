@@ -9,11 +9,15 @@ take minutes: marked slow (`pytest -m slow tests/test_identify.py`).
 from __future__ import annotations
 
 import dataclasses
+import types
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from identify import modes
+import pcrjax
+from identify import experiment, modes
 from identify.fit import FitError, Problem, fit, levenberg_marquardt, summarize
 from identify.recording import load_recording
 
@@ -208,3 +212,21 @@ def test_recording_with_the_scenes_own_values_fits_back_unchanged(tmp_path):
     res = fit(pb, state_dir=tmp_path)
     _check_fit(res, rec)
     assert abs(res.values["push_force"][1] - truth["push_force"][1]) < 3 * res.standard_errors["push_force"][1]
+
+
+def test_rod_tip_angle_is_the_tangent_angle_in_the_bending_plane():
+    """A tip marker's angle (issue 17): `planar_pose`'s theta of a rod is its tip tangent's angle
+    in the x-z plane. Oracle: the one-sided second-order difference of the last three nodes'
+    positions (independent of the rotations; its error h^2 |p'''| / 3 = h^2 F / (3 EI) is 2.6e-5
+    rad at 2 N and N = 160; shear tilts d3 off p' by 9e-6 rad), on the shipped cantilever bent
+    by its 2 N tip load and by 20 mN (nearly straight)."""
+    base = pcrjax.with_solver(pcrjax.load_scene("cantilever"), nodes=160)
+    for force in (-2.0, -0.02):
+        st = pcrjax.solve_static(eqx.tree_at(lambda s: s.load.force, base, jnp.array([0.0, 0.0, force])))
+        traj = types.SimpleNamespace(position=st.position[None], rotation_vector=st.rotation_vector[None])
+        theta = float(experiment.planar_pose(base, traj)[0, 2])
+        p = np.asarray(st.positions)[0]
+        d = 3 * p[-1] - 4 * p[-2] + p[-3]
+        expected = np.arctan2(d[2], d[0])
+        print(f"tip load {force} N: theta {theta:.6f} rad, from the nodes {expected:.6f} rad")
+        assert abs(theta - expected) < 1e-4 and abs(theta) > 1e-3
