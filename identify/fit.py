@@ -8,10 +8,10 @@ the pattern frame's offset and rotation follow, `frame_transform`) and its clock
 for a push-and-release, the push that was released (its force and moment). Positive parameters
 are fitted as logarithms, the others in units of a typical size, so every unknown is O(1).
 
-**Start.** `modal_start`: damping from the decay of the recorded modes, lengths that give the
-model the recorded frequencies (`modes`), or after an actuator move the recorded static response
-to it (`static_shift`). From nominal lengths a time-domain fit falls into a
-wrong minimum: on the Triskele-bot 2 % of rod length moves the modes from 86-155 Hz to 19-84 Hz.
+**Start.** `modal_start`: candidate damping and lengths whose modes (or static response to an
+actuator move) match the recording's (`start`), ranked by a short time-domain fit of the push
+and the camera. From nominal lengths a time-domain fit falls into a wrong minimum: on the
+Triskele-bot 2 % of rod length moves the modes from 86-155 Hz to 19-84 Hz.
 
 **Residuals.** ``(camera model - recording) / sigma`` per frame and column, with ``sigma`` the
 noise of the position and angle columns. Noise levels are unknown for a real log, so they are
@@ -30,21 +30,18 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import pcrjax
-from pcrjax.robots.signals import Actuation
 
-from . import camera, experiment, modes
+from . import camera, experiment, start
 from .recording import Recording, RecordingError
 
 PHYSICAL = ("tau", "tau_per_rod", "lengths")
@@ -132,8 +129,8 @@ class Problem:
         # compiled once per problem: sigma and the window are arguments
         self._residual = jax.jit(self._residual_fn)
         self._residual_and_jacobian = jax.jit(self._residual_and_jacobian_fn)
-        self._camera_residual = jax.jit(self._seen_residual_fn)
-        self._camera_jacobian = jax.jit(jax.jacfwd(self._seen_residual_fn, argnums=2))
+        self._linear_residual = jax.jit(self._linear_residual_fn)
+        self._linear_jacobian = jax.jit(jax.jacfwd(self._linear_residual_fn))
         self.initial_values = self._initial_values(nom, initial or {})
 
     # -- parameter vector <-> values ----------------------------------------------------------
@@ -255,21 +252,43 @@ class Problem:
         d_m0, d_tc = jax.jacfwd(f, argnums=(0, 1))(jnp.asarray(m0), tc)
         return np.asarray(f(jnp.asarray(m0), tc)), np.concatenate([np.asarray(d_m0) @ dm0, np.asarray(d_tc)], axis=1)
 
-    def fit_camera(self, theta, t_end=None, max_iter: int = 10):
-        """(``theta`` with its camera unknowns fitted to the frames up to ``t_end``, the cost
-        there): Levenberg-Marquardt on the camera unknowns alone, the motion held at ``theta``'s
-        (one rollout; the camera's Jacobian costs none). Cost inf where the rollout fails."""
+    def fit_linear(self, theta, t_end=None, max_iter: int = 10):
+        """(``theta`` with the unknowns the motion seen depends on (nearly) linearly fitted to the
+        frames up to ``t_end``, the cost there): Levenberg-Marquardt on the camera's unknowns and
+        the released push, the motion held at ``theta``'s and linear in the push (its tangents by
+        finite differences: one rollout per push component; the camera's Jacobian costs none).
+        Cost inf where a rollout fails."""
         theta = np.asarray(theta, float)
         n, sigma = self.n_physical, jnp.asarray(self.sigma)
         mask, active = self.window(t_end)
-        motion = self._residual(jnp.asarray(theta), sigma, mask, active)[1]
-        if not bool(jnp.all(jnp.isfinite(motion))):
+        push = np.concatenate(
+            [np.arange(self.n_physical)[self.slices[k]] for k in ("push_force", "push_moment") if k in self.slices]
+            or [np.zeros(0, int)]
+        )
+        motions = []
+        for i in [None, *push]:
+            th = theta.copy()
+            if i is not None:
+                th[i] += 1.0
+            motions.append(self._residual(jnp.asarray(th), sigma, mask, active)[1])
+        if not all(bool(jnp.all(jnp.isfinite(m))) for m in motions):
             return theta, math.inf
-        tp = jnp.asarray(theta[:n])
-        rf = lambda tc: self._camera_residual(motion, tp, tc, sigma, mask)  # noqa: E731
-        rj = lambda tc: (rf(tc), self._camera_jacobian(motion, tp, tc, sigma, mask))  # noqa: E731
-        tc, _, r, _, _, _ = levenberg_marquardt(rf, rj, theta[n:], max_iter, ftol=1e-8, max_step=self.max_step[n:])
-        return np.concatenate([theta[:n], tc]), 0.5 * float(r @ r)
+        m0, dm = motions[0], jnp.stack([m - motions[0] for m in motions[1:]], axis=-1) if push.size else None
+        x0 = np.concatenate([theta[push], theta[n:]])
+        rf = lambda x: self._linear_residual(x, m0, dm, jnp.asarray(theta), jnp.asarray(push), sigma, mask)  # noqa: E731
+        rj = lambda x: (rf(x), self._linear_jacobian(x, m0, dm, jnp.asarray(theta), jnp.asarray(push), sigma, mask))  # noqa: E731
+        x, _, r, _, _, _ = levenberg_marquardt(rf, rj, x0, max_iter, ftol=1e-8, max_step=math.inf)
+        out = theta.copy()
+        out[push], out[n:] = x[: push.size], x[push.size :]
+        return out, 0.5 * float(r @ r)
+
+    def _linear_residual_fn(self, x, m0, dm, theta, push, sigma, mask):
+        """Residuals with the motion ``m0`` moved along the push tangents ``dm`` by the push's
+        change in ``x`` (push unknowns first, camera unknowns after)."""
+        k = push.size
+        tp = theta[: self.n_physical].at[push].set(x[:k])
+        motion = m0 if k == 0 else m0 + dm @ (x[:k] - theta[push])
+        return self._seen_residual_fn(motion, tp, x[k:], sigma, mask)
 
     def seen(self, theta, t_end=None):
         """Camera poses (M, 3) at ``theta`` (frames after ``t_end``: the recording's own)."""
@@ -400,119 +419,51 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
     return np.asarray(theta), history
 
 
-# Free motion: the modes whose frequencies the modal start matches. Kelvin-Voigt damping decays a
-# mode at tau omega^2 / 2, so when the lowest lasts a second the third lasts a few frames of a
-# 114 frames/s film (Triskele: 18.9, 46.8 and 84.7 Hz decay at 2.8, 17 and 57 /s); its pole
-# estimate is noise that drags the unaliasing of the others with it.
-FREE_MODES = 2
-
-
 def modal_start(
     problem: Problem,
     theta,
     progress=None,
-    spread: float = 1.5e-3,
+    rank_window: float = 0.1,
     screen_window: float = 0.2,
     screen_iter: int = 8,
     screen_best: int = 2,
-    settle_from: float = 0.6,
     warm=None,
 ):
-    """Start values of damping and lengths from the recording's modes (`modes`).
-
-    The damping time comes from the decay of the recorded modes. Lengths: Newton on features
-    that do not depend on the camera's frame and clock, until the model's equal the recording's,
-    from the nominal lengths and from six starts ``spread`` away (each rod in turn longer, then
-    shorter; the features alone do not determine lengths: several sets of lengths share them).
-    The features are the lowest ``FREE_MODES`` frequencies (at most one per rod) of free motion; after an actuator move
-    they are the static response to the move (|displacement| and |rotation| between the
-    equilibria before and after it: `static_shift` for the model, `modes.settled` after
-    ``settle_from`` s for the recording), which are smooth in the lengths and need no rollout;
-    at the camera's 114 frames/s, frequencies estimated from a few cycles jump between aliased
-    modes as lengths change. The distinct solutions are ranked by the loss over the first
-    ``screen_window`` seconds after the forcing with the camera unknowns fitted (one rollout
-    each, `Problem.fit_camera`); the ``screen_best`` best are screened by a short
-    Levenberg-Marquardt fit of all unknowns on that window, which mode shapes and amplitudes
-    decide. Returns (the best, the screening: None, or its ``window`` end, ``candidates``,
-    ``iterations`` and the best's loss ``history``: the fit's windows up to that end are then
-    done). ``progress(stage, i, loss, step)``, loss and step None for a message; ``warm()`` is
-    called once the features are known and the first simulation has compiled (the caller builds
-    the Jacobian's program meanwhile)."""
-    theta = np.array(theta, float)
-    t_from = experiment.forcing_end(problem.scene)
-    n_rods = int(np.size(problem.fixed["lengths"]))
-    actuated = t_from > 0.0
-    tau_nominal = float(np.mean(problem.fixed["tau"]))
-    n_modes = 1 if actuated else min(n_rods, FREE_MODES)
-    target, tau0 = modes.recorded_modes(
-        problem.rec, t_from, n_modes, 2 * n_modes + 1, tau_range=(tau_nominal / 10, tau_nominal * 10)
-    )
-    if progress is not None:
-        progress(f"modal start: recorded modes {', '.join(f'{f:.2f}' for f in target)} Hz, tau {tau0:.4g} s", 0, None, None)
-    if "tau" in problem.slices:
-        theta[problem.slices["tau"]] = np.log(tau0)
-    if "lengths" not in problem.slices:
-        return theta, None
-    i_len = problem.slices["lengths"]
-    if actuated:
-        rec = problem.rec
-        late = rec.t >= min(max(settle_from, t_from), 0.5 * (t_from + rec.t[-1]))  # a short recording: its second half
-        before = rec.pose[rec.t < experiment.forcing_start(problem.scene)]
-        target = np.asarray(
-            frame_invariant(modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1] - np.mean(before, axis=0))
-        )
-        if progress is not None:
-            progress(
-                f"modal start: static response to the move {target[0] * 1e6:.4g} um, {target[1] * 1e6:.4g} urad", 0, None, None
-            )
-        model_shift = static_shift(problem.scene)
-        features_of = lambda x: np.asarray(model_shift(jnp.asarray(x)))  # noqa: E731
-    else:
-
-        def features_of(x):
-            th = theta.copy()
-            th[i_len] = x
-            return modes.simulated_frequencies(problem.motion(th, 0.4), problem.scene.solver.dt, n_modes)
-
-    x0 = theta[i_len]
-    starts = [x0] + [x0 + sign * spread / np.exp(x0) * np.eye(n_rods)[k] for k in range(n_rods) for sign in (1.0, -1.0)]
-    found = []
-    # The starts are independent: one thread per core (a simulation runs on one core and releases
-    # the GIL). Results are taken in order, so the outcome does not depend on timing. The first
-    # evaluation compiles, before the threads (each would otherwise trace the same program).
-    features_of(x0)
-    if warm is not None:
-        warm()
-    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
-        matched = [pool.submit(modes.match_frequencies, features_of, x, target) for x in starts]
-        for j, job in enumerate(matched):
-            x, ok = job.result()
-            if progress is not None:
-                progress(
-                    f"modal start {j + 1}/{len(starts)}: lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm {'match' if ok else 'do not match'} the recorded features",
-                    j + 1,
-                    None,
-                    None,
-                )
-            if ok and np.all(np.abs(np.exp(x) / np.exp(x0) - 1) < 0.15) and not any(np.max(np.abs(x - y)) < 1e-3 for y in found):
-                found.append(x)
+    """Start values of damping and lengths (`start.initial_lengths`: the candidates whose
+    features match the recording's), ranked by the loss over the first ``rank_window`` seconds
+    after the forcing with the push and the camera fitted (a rollout per push component,
+    `Problem.fit_linear`); the ``screen_best`` best are screened by a short Levenberg-Marquardt
+    fit of all unknowns on the first ``screen_window`` seconds, which mode shapes and amplitudes
+    decide. Returns (the best, the screening: None,
+    or its ``window`` end, ``candidates``, ``iterations`` and the best's loss ``history``: the
+    fit's windows up to that end are then done). ``progress(stage, i, loss, step)``, loss and
+    step None for a message; ``warm()`` is called once the features are known and the first
+    simulation has compiled (the caller builds the Jacobian's program meanwhile)."""
+    theta, found = start.initial_lengths(problem, theta, progress, warm) if "lengths" in problem.slices else (theta, [])
     if not found:
-        raise RecordingError(
-            f"{problem.rec.path}: no rod lengths give the recorded features ({', '.join(f'{f:.4g}' for f in target)})"
-        )
+        return start.initial_tau(problem, theta, progress), None
+    i_len = problem.slices["lengths"]
     if len(found) == 1:
         theta[i_len] = found[0]
         return theta, None
+    t_from = experiment.forcing_end(problem.scene)
     t_screen = t_from + screen_window
     ranked = []
     for x in found:
         th = theta.copy()
         th[i_len] = x
-        th, cost = problem.fit_camera(th, t_screen)
+        th, cost = problem.fit_linear(th, t_from + rank_window)
         if progress is not None:
-            progress(f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm, camera fitted", len(ranked) + 1, cost, 0.0)
+            progress(
+                f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm, push and camera fitted",
+                len(ranked) + 1,
+                cost,
+                0.0,
+            )
         ranked.append((cost, len(ranked), th))
     ranked = [c for c in sorted(ranked, key=lambda c: c[:2]) if np.isfinite(c[0])][:screen_best]
+    if not ranked:
+        raise FitError(f"{problem.rec.path}: the simulation fails at every candidate set of lengths")
     if len(ranked) == 1:  # the others' simulations fail
         return ranked[0][2], None
     best, best_hist, iterations = None, [np.inf], 0
@@ -536,33 +487,6 @@ def modal_start(
     if best is None:
         raise FitError(f"{problem.rec.path}: the simulation fails at every set of lengths that gives the recorded features")
     return best, dict(window=t_screen, candidates=len(ranked), iterations=iterations, history=best_hist)
-
-
-def frame_invariant(shift):
-    """(|displacement|, |rotation|) of a change ``shift`` (3,) of planar pose: the same in every
-    pattern frame."""
-    return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
-
-
-def static_shift(scene):
-    """Jitted ``log lengths -> frame_invariant`` of the static equilibrium after the actuators'
-    moves relative to the one before (m and rad)."""
-    end = scene.actuation(jnp.asarray(experiment.forcing_end(scene)))
-    held = Actuation(
-        initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0]
-    )
-    after = eqx.tree_at(lambda s: s.actuation, scene, held)
-
-    def planar(s, lengths):
-        st = pcrjax.solve_static(experiment.apply(s, {"lengths": lengths}), throw=False)
-        return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
-
-    @jax.jit
-    def shift(log_lengths):
-        (a, ok_a), (b, ok_b) = planar(scene, jnp.exp(log_lengths)), planar(after, jnp.exp(log_lengths))
-        return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
-
-    return shift
 
 
 # The whole recording's passes stop when an iteration lowers the loss by less than 1e-3 of the

@@ -1,0 +1,329 @@
+r"""Start values of damping and lengths: a screen of the prior, feature matching, then a short fit.
+
+An oscillating recording's loss has a minimum every cycle of phase error, so a fit started from
+nominal rod lengths lands in a wrong minimum (on the Triskele-bot 2 % of rod length moves the
+platform modes from 86-155 Hz to 19-84 Hz). Features that do not depend on the phase, the
+amplitude, the push or the camera's frame and clock locate the basin first:
+
+* **free motion** (a push or tip load released): the frequencies of the strongest oscillations
+  the camera shows. They are compared *as the camera shows them*: the model's frequencies,
+  measured on its own finely sampled motion, are folded at the frame rate (`modes.fold`) and
+  matched to the recorded ones, so no guess of how the recording aliased is needed. Nonlinear
+  harmonics (a cantilever's axial swing at twice the bending frequency) are in both.
+* **after an actuator move**: the static response to the move (`static_shift`), smooth in the
+  lengths and without a rollout.
+
+The stages (`initial_lengths`):
+
+1. **Screen** the prior, each length within ``prior_length`` of nominal: the nominal lengths and
+   a seeded Latin hypercube, one short simulation (or two static solves) each, on as many threads
+   as there are cores. Candidates are ranked by their features' distance to the recording's.
+2. **Polish** the best few by Gauss-Newton on the features (`modes.match_frequencies`).
+3. **Rank** the distinct results by the loss over the first ``screen_window`` seconds with the
+   camera fitted, then a short Levenberg-Marquardt fit of every unknown from the best two (mode
+   shapes and amplitudes decide between lengths that share the features).
+
+Nothing is abandoned while a candidate remains: when no polished candidate matches the features,
+the closest ones go on to the ranking, and the message says what was and was not matched.
+
+**Damping** comes from the decays: Kelvin-Voigt damping decays every mode (and its harmonics)
+in proportion to tau, so tau is the simulated tau times the recorded-to-simulated ratio of the
+matched decays (geometric mean), kept within a decade of nominal either way.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import pcrjax
+from pcrjax.robots.signals import Actuation
+
+from . import experiment, modes
+from .recording import RecordingError
+
+PRIOR_LENGTH = 2e-3  # m: each rod within this of its nominal length
+TAU_RANGE = 10.0  # tau within a factor of this of nominal
+# candidates screened (the nominal lengths and a Latin hypercube) and the best ones polished by
+# Gauss-Newton on the features, then ranked in the time domain: many where the features are
+# static solves, fewer where each is a simulation
+SCREEN = {True: (512, 64), False: (24, 4)}  # static features: (screened, polished); simulated
+MATCH = 0.03  # features within 3 %: a match
+SIMULATED = 0.4  # s of free motion simulated per candidate
+WINDOW = 0.1  # s: the matrix pencil's window (at least 12 frames)
+ORDER = 7  # the matrix pencil's order: three oscillations and a drift
+FEATURE_STRENGTH = 0.05  # recorded oscillations matched: at least this of the strongest's strength
+SHAPE_STRENGTH = 0.2  # ... and their shapes too: at least this
+SHAPE_WEIGHT = 0.3  # a mode shape's relative error counts less than its frequency's
+MODEL_ORDER = 13  # the matrix pencil's order on the model's motion: six oscillations and a drift
+
+
+def latin_hypercube(center, half_width, n: int, seed: int = 0):
+    """``n`` points (n, d): ``center`` first, then a Latin hypercube of the box ``center ±
+    half_width`` (each coordinate's range cut into n - 1 strata, one point in each)."""
+    center = np.atleast_1d(np.asarray(center, float))
+    rng = np.random.default_rng(seed)
+    m = max(n - 1, 0)
+    u = (np.stack([rng.permutation(m) for _ in center], axis=1) + rng.random((m, center.size))) / max(m, 1)
+    return np.concatenate([center[None], center + (2.0 * u - 1.0) * half_width])
+
+
+def frame_invariant(shift):
+    """(|displacement|, |rotation|) of a change ``shift`` (3,) of planar pose: the same in every
+    pattern frame."""
+    return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
+
+
+def static_shift(scene):
+    """Jitted ``log lengths -> frame_invariant`` of the static equilibrium after the actuators'
+    moves relative to the one before (m and rad)."""
+    end = scene.actuation(jnp.asarray(experiment.forcing_end(scene)))
+    held = Actuation(
+        initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0]
+    )
+    after = eqx.tree_at(lambda s: s.actuation, scene, held)
+
+    def planar(s, lengths):
+        st = pcrjax.solve_static(experiment.apply(s, {"lengths": lengths}), throw=False)
+        return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
+
+    @jax.jit
+    def shift(log_lengths):
+        (a, ok_a), (b, ok_b) = planar(scene, jnp.exp(log_lengths)), planar(after, jnp.exp(log_lengths))
+        return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
+
+    return shift
+
+
+class Features:
+    """The recording's features and the model's, for lengths ``x`` (logs).
+
+    ``recorded``: the recording's frequencies (Hz, as filmed) and decays of its strongest
+    oscillations after the forcing, or its static response to the move; ``weights``: their share
+    of the strength; ``of(x)``: the model's features matched to them one by one, NaN where its
+    simulation fails."""
+
+    def __init__(self, problem, theta):
+        self.problem, self.theta = problem, np.array(theta, float)
+        self.t_from = experiment.forcing_end(problem.scene)
+        self.actuated = self.t_from > 0.0
+        self.i_len = problem.slices.get("lengths")  # None: lengths held
+        rec = problem.rec
+        keep = rec.t >= self.t_from
+        window = max(12, int(round(WINDOW * rec.frame_rate)))
+        try:
+            f, d, s, shape = modes.dominant(rec.t[keep], rec.pose[keep], rec.frame_rate, ORDER, window)
+        except ValueError as e:
+            raise ValueError(f"{rec.path}: after t = {self.t_from:g} s: {e}") from None
+        if f.size == 0:
+            raise ValueError(f"{rec.path}: no decaying oscillation found after t = {self.t_from:g} s to start the fit from")
+        self.freq, self.decay, self.strength, self.shape = f, d, s, shape
+        if self.actuated:
+            late = rec.t >= min(max(0.6, self.t_from), 0.5 * (self.t_from + rec.t[-1]))  # a short recording: its second half
+            before = rec.pose[rec.t < experiment.forcing_start(problem.scene)]
+            rest = modes.settled(rec.t[late], rec.pose[late], rec.frame_rate, 5)[1]
+            self.recorded = np.asarray(frame_invariant(rest - np.mean(before, axis=0)))
+            self.weights = np.ones(2) / 2
+            self._shift = static_shift(problem.scene)
+        else:
+            # each oscillation's frequency as filmed, and the strong ones' shapes
+            self.n_freq = int(np.sum(s >= FEATURE_STRENGTH * s[0]))
+            self.n_shape = int(np.sum(s >= SHAPE_STRENGTH * s[0]))
+            self.recorded = np.concatenate([f[: self.n_freq], shape[: self.n_shape]])
+            w = s / np.sum(s[: self.n_freq])
+            self.weights = np.concatenate([w[: self.n_freq], SHAPE_WEIGHT * w[: self.n_shape]])
+        lumped = not self.actuated and not experiment.is_rod(problem.scene) and bool(problem.scene.effects.planar)
+        self._lumped = platform_modes(problem.scene) if lumped else None
+        self.static = self.actuated or lumped  # features from static solves (no simulation)
+        # the model's simulated modes at theta's damping (the discretised damping moves frequencies too)
+        self.tau_sim = float(np.mean(np.exp(self.theta[problem.slices["tau"]]))) if "tau" in problem.slices else None
+
+    def describe(self) -> str:
+        if self.actuated:
+            return f"static response to the move {self.recorded[0] * 1e6:.4g} um, {self.recorded[1] * 1e6:.4g} urad"
+        return "strongest oscillations " + ", ".join(
+            f"{f:.2f} Hz (decay {d:.3g}/s, {sh:.3g} m/rad)" for f, d, sh in zip(self.freq, self.decay, self.shape)
+        )
+
+    def simulated(self, x):
+        """(physical frequencies Hz, decays 1/s, strengths) of the model's free motion at log
+        lengths ``x`` (None: theta's), the strongest first; None where the simulation fails."""
+        th = self.theta.copy()
+        if x is not None:
+            th[self.i_len] = x
+        dt = float(self.problem.scene.solver.dt)
+        m = self.problem.motion(th, self.t_from + SIMULATED)[int(round(self.t_from / dt)) :]
+        if not np.all(np.isfinite(m)):
+            return None
+        sub = max(1, int(round(1e-3 / dt)))  # about 1 kHz: modes up to a few hundred Hz
+        m, rate = m[::sub], 1.0 / (dt * sub)
+        try:
+            return modes.dominant(
+                np.arange(m.shape[0]) / rate, m, rate, MODEL_ORDER, max(12, int(round(WINDOW * rate))), keep=6, floor=0.01
+            )
+        except ValueError:
+            return None
+
+    def modes_at(self, x):
+        """(frequencies Hz, shapes m/rad) of the model's modes at log lengths ``x``: a planar
+        platform's three lumped modes (`platform_modes`), or the oscillations of a simulated
+        release (a rod: its modes are its own); NaN where the model fails."""
+        if self._lumped is not None:
+            f, shape = self._lumped(jnp.asarray(x))
+            return np.asarray(f), np.asarray(shape)
+        sim = self.simulated(x)
+        if sim is None or sim[0].size == 0:
+            return np.full(1, np.nan), np.full(1, np.nan)
+        return sim[0], sim[3]
+
+    def of(self, x):
+        if self.actuated:
+            return np.asarray(self._shift(jnp.asarray(x)))
+        f, shape = self.modes_at(x)
+        if not np.all(np.isfinite(f)):
+            return np.full(self.recorded.size, np.nan)
+        rate = self.problem.rec.frame_rate
+        shown = modes.fold(f, rate)
+        with_harmonics = np.concatenate([shown, modes.fold(2.0 * f, rate)])  # a nonlinear motion's second harmonics
+        r = self.freq[: self.n_freq, None]
+        k = np.argmin(np.abs(with_harmonics[None, :] - r), axis=1)
+        k_shape = np.argmin(np.abs(shown[None, :] - r[: self.n_shape]), axis=1)
+        return np.concatenate([with_harmonics[k], shape[k_shape]])
+
+    def distance(self, features) -> float:
+        """Weighted relative distance of model ``features`` to the recorded ones (inf: failed)."""
+        rel = np.abs(np.log(np.maximum(features, 1e-300) / self.recorded))
+        return float(np.sum(self.weights * np.minimum(rel, 1.0))) if np.all(np.isfinite(rel)) else np.inf
+
+    def tau(self, x, tau_nominal: float):
+        """(tau, the recorded oscillation it comes from: (Hz as filmed, decay 1/s), or None: the
+        nominal) at log lengths ``x``: theta's tau times the ratio of the decay of the strongest
+        recorded oscillation that a model mode matches to that mode's (Kelvin-Voigt damping
+        decays every mode in proportion to tau), kept within TAU_RANGE of nominal."""
+        sim = self.simulated(x)
+        if sim is None or sim[0].size == 0 or self.tau_sim is None:
+            return tau_nominal, None
+        shown = modes.fold(sim[0], self.problem.rec.frame_rate)
+        for f, d in zip(self.freq, self.decay):
+            k = int(np.argmin(np.abs(shown - f)))
+            if abs(shown[k] / f - 1.0) < MATCH and sim[1][k] > 0:
+                tau = self.tau_sim * d / sim[1][k]
+                return float(np.clip(tau, tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE)), (f, d)
+        return tau_nominal, None
+
+
+def initial_lengths(problem, theta, progress=None, warm=None, prior_length: float = PRIOR_LENGTH, seed: int = 0):
+    """(theta with damping and lengths started from the recording's features, the candidates
+    (log lengths) worth ranking in the time domain, best first). See the module's text."""
+    theta = np.array(theta, float)
+    feats = Features(problem, theta)
+    say = (lambda msg: progress(msg, 0, None, None)) if progress is not None else (lambda msg: None)  # noqa: E731
+    say(f"start: recorded {feats.describe()}")
+    x0 = theta[feats.i_len]
+    L0 = np.exp(x0)
+    if np.any(L0 <= prior_length):
+        raise RecordingError(f"prior: lengths {L0.tolist()} m cannot vary by ±{prior_length:g} m")
+    n_screen, n_polish = SCREEN[feats.static]
+    cands = np.log(latin_hypercube(L0, prior_length, n_screen, seed))
+    feats.of(x0)  # compiles once, before the threads
+    if warm is not None:
+        warm()
+    workers = max(1, os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        found = list(pool.map(feats.of, cands))
+    dist = np.array([feats.distance(f) for f in found])
+    order = np.argsort(dist, kind="stable")
+    ok = order[np.isfinite(dist[order])]
+    say(
+        f"start: screened {len(cands)} sets of lengths within ±{prior_length * 1e3:g} mm: "
+        f"the model holds at {ok.size}, the closest features {np.round(found[ok[0]], 4).tolist() if ok.size else '-'}"
+    )
+    if ok.size == 0:
+        raise RecordingError(
+            f"{problem.rec.path}: the model fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
+        )
+
+    def polish(x):
+        return modes.match_frequencies(feats.of, x, feats.recorded, max_iter=8, tol=1e-3, weights=feats.weights)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        polished = list(pool.map(polish, cands[ok[:n_polish]]))
+    matched, dists = [], []
+    for x, _ in polished:
+        d = feats.distance(feats.of(x))
+        dists.append(d)
+        if (
+            d < MATCH
+            and np.all(np.abs(np.exp(x) - L0) <= 1.5 * prior_length)
+            and not any(np.max(np.abs(x - y)) < 1e-3 for y in matched)
+        ):
+            matched.append(x)
+    say(f"start: {len(polished)} closest polished: {len(matched)} distinct sets of lengths match the features to {MATCH:.0%}")
+    if not matched:
+        best = int(np.argmin(dists)) if dists else None
+        reached = feats.of(polished[best][0]) if best is not None else found[ok[0]]
+        say(
+            f"start: no lengths within the prior match the recorded features {np.round(feats.recorded, 4).tolist()} to {MATCH:.0%}; "
+            f"the closest reach {np.round(reached, 4).tolist()}: going on from the polished ones"
+        )
+        matched = [x for x, _ in polished] or [cands[ok[0]]]
+    if "tau" in problem.slices:
+        tau, used = feats.tau(matched[0], float(np.mean(problem.fixed["tau"])))
+        theta[problem.slices["tau"]] = np.log(tau)
+        say(
+            f"start: tau {tau:.4g} s"
+            + (f" from the decay of {used[0]:.2f} Hz" if used is not None else " (no decay matched: the scene's)")
+        )
+    return theta, matched
+
+
+def initial_tau(problem, theta, progress=None):
+    """``theta`` with its damping started from the recording's decays at its lengths (a fit of
+    the damping alone)."""
+    theta = np.array(theta, float)
+    if "tau" not in problem.slices:
+        return theta
+    feats = Features(problem, theta)
+    tau, _ = feats.tau(None, float(np.mean(problem.fixed["tau"])))
+    theta[problem.slices["tau"]] = np.log(tau)
+    if progress is not None:
+        progress(f"start: tau {tau:.4g} s", 0, None, None)
+    return theta
+
+
+def platform_modes(scene):
+    """Jitted ``log lengths -> (frequencies Hz (3,), shapes (3,))`` of a planar platform's three
+    modes about its rest (no load), the rods' mass neglected (a rod weighs 1e-5 of the
+    platform): the stiffness is the inverse of the static compliance d(x, y, theta)/d(Fx, Fy, Mz),
+    the mass the platform's; shape = |planar| / |angular| amplitude (m/rad). NaN where the static
+    solve fails."""
+    body = scene.end.body
+    mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
+
+    def pose(lengths, wrench):
+        s = experiment.apply(scene, {"lengths": lengths})
+        s = eqx.tree_at(
+            lambda s: (s.load.force, s.load.moment), s, (jnp.zeros(3).at[:2].set(wrench[:2]), jnp.zeros(3).at[2].set(wrench[2]))
+        )
+        st = pcrjax.solve_static(s, throw=False)
+        return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
+
+    @jax.jit
+    def modes_of(log_lengths):
+        L = jnp.exp(log_lengths)
+        C, ok = jax.jacfwd(pose, argnums=1, has_aux=True)(L, jnp.zeros(3))
+        K = jnp.linalg.inv(C)
+        K = 0.5 * (K + K.T)
+        r = 1.0 / jnp.sqrt(mass)
+        w2, v = jnp.linalg.eigh(r[:, None] * K * r[None, :])
+        phi = r[:, None] * v
+        shape = jnp.hypot(phi[0], phi[1]) / jnp.abs(phi[2])
+        f = jnp.sqrt(jnp.maximum(w2, 0.0)) / (2 * jnp.pi)
+        return jnp.where(ok, f, jnp.nan), jnp.where(ok, shape, jnp.nan)
+
+    return modes_of
