@@ -262,8 +262,7 @@ class Problem:
         n, sigma = self.n_physical, jnp.asarray(self.sigma)
         mask, active = self.window(t_end)
         push = np.concatenate(
-            [np.arange(self.n_physical)[self.slices[k]] for k in ("push_force", "push_moment") if k in self.slices]
-            or [np.zeros(0, int)]
+            [np.arange(n)[self.slices[k]] for k in ("push_force", "push_moment") if k in self.slices] or [np.zeros(0, int)]
         )
         motions = []
         for i in [None, *push]:
@@ -275,8 +274,9 @@ class Problem:
             return theta, math.inf
         m0, dm = motions[0], jnp.stack([m - motions[0] for m in motions[1:]], axis=-1) if push.size else None
         x0 = np.concatenate([theta[push], theta[n:]])
-        rf = lambda x: self._linear_residual(x, m0, dm, jnp.asarray(theta), jnp.asarray(push), sigma, mask)  # noqa: E731
-        rj = lambda x: (rf(x), self._linear_jacobian(x, m0, dm, jnp.asarray(theta), jnp.asarray(push), sigma, mask))  # noqa: E731
+        args = (m0, dm, jnp.asarray(theta), jnp.asarray(push), sigma, mask)
+        rf = lambda x: self._linear_residual(x, *args)  # noqa: E731
+        rj = lambda x: (rf(x), self._linear_jacobian(x, *args))  # noqa: E731
         x, _, r, _, _, _ = levenberg_marquardt(rf, rj, x0, max_iter, ftol=1e-8, max_step=math.inf)
         out = theta.copy()
         out[push], out[n:] = x[: push.size], x[push.size :]
@@ -434,9 +434,9 @@ def modal_start(
     after the forcing with the push and the camera fitted (a rollout per push component,
     `Problem.fit_linear`); the ``screen_best`` best are screened by a short Levenberg-Marquardt
     fit of all unknowns on the first ``screen_window`` seconds, which mode shapes and amplitudes
-    decide. Returns (the best, the screening: None,
-    or its ``window`` end, ``candidates``, ``iterations`` and the best's loss ``history``: the
-    fit's windows up to that end are then done). ``progress(stage, i, loss, step)``, loss and
+    decide. Returns (the best, the screening: None, or its ``window`` end, ``candidates``,
+    ``iterations`` and the best's loss ``history``: the fit's windows up to that end are then
+    done). ``progress(stage, i, loss, step)``, loss and
     step None for a message; ``warm()`` is called once the features are known and the first
     simulation has compiled (the caller builds the Jacobian's program meanwhile)."""
     theta, found = start.initial_lengths(problem, theta, progress, warm) if "lengths" in problem.slices else (theta, [])

@@ -57,12 +57,13 @@ def amplitudes(t, pose, frame_rate, z):
     return coef[1 : 1 + len(z)]
 
 
-def strengths(t, pose, frame_rate, z):
-    """How much of the motion each pole ``z`` carries: the root of its energy summed over the
-    frames, |c|^2 / (1 - |z|^2) for its amplitude c in columns scaled to unit spread (a mode
-    that dies within a few frames counts little, however large it starts)."""
+def strengths(pose, z, amps):
+    """How much of the motion each pole ``z`` carries, from its amplitudes ``amps`` (`amplitudes`)
+    in the columns of ``pose``: the root of its energy summed over the frames, |c|^2 / (1 - |z|^2)
+    for its amplitude c in columns scaled to unit spread (a mode that dies within a few frames
+    counts little, however large it starts)."""
     sd = np.std(pose, axis=0)
-    c = amplitudes(t, pose, frame_rate, z) / np.where(sd > 0, sd, np.inf)
+    c = amps / np.where(sd > 0, sd, np.inf)
     return np.sqrt(np.sum(np.abs(c) ** 2, axis=1) / np.maximum(1.0 - np.abs(z) ** 2, 1e-12))
 
 
@@ -80,8 +81,9 @@ def dominant(t, pose, frame_rate, order: int, window: int, keep: int = 3, floor:
     same in every frame the plane is seen in."""
     z = poles(t, pose, frame_rate, order, window)
     f, d = describe(z, frame_rate)
-    s = strengths(t, pose, frame_rate, z)
-    a = np.abs(amplitudes(t, pose, frame_rate, z))
+    amps = amplitudes(t, pose, frame_rate, z)
+    s = strengths(pose, z, amps)
+    a = np.abs(amps)
     shape = np.hypot(a[:, 0], a[:, 1]) / np.maximum(a[:, 2], 1e-300)
     osc = (f > 1e-3 * frame_rate) & (f < 0.49 * frame_rate) & (d > 0)
     if not osc.any():

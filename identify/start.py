@@ -13,22 +13,25 @@ amplitude, the push or the camera's frame and clock locate the basin first:
 * **after an actuator move**: the static response to the move (`static_shift`), smooth in the
   lengths and without a rollout.
 
+For planar platforms the model's modes come from a lumped model (`platform_modes`: the static
+compliance and the platform's inertia; the rods weigh 1e-5 of the platform), a few milliseconds
+per set of lengths; for a rod, from a short simulated release.
+
 The stages (`initial_lengths`):
 
 1. **Screen** the prior, each length within ``prior_length`` of nominal: the nominal lengths and
-   a seeded Latin hypercube, one short simulation (or two static solves) each, on as many threads
-   as there are cores. Candidates are ranked by their features' distance to the recording's.
-2. **Polish** the best few by Gauss-Newton on the features (`modes.match_frequencies`).
-3. **Rank** the distinct results by the loss over the first ``screen_window`` seconds with the
-   camera fitted, then a short Levenberg-Marquardt fit of every unknown from the best two (mode
-   shapes and amplitudes decide between lengths that share the features).
+   a seeded Latin hypercube (`SCREEN`: many where the features are static solves, few where each
+   is a simulation), on as many threads as there are cores. Candidates are ranked by their
+   features' distance to the recording's.
+2. **Polish** the best ones by weighted Gauss-Newton on the features (`modes.match_frequencies`).
+   The distinct ones that match go on to the time-domain ranking (`fit.modal_start`).
 
 Nothing is abandoned while a candidate remains: when no polished candidate matches the features,
-the closest ones go on to the ranking, and the message says what was and was not matched.
+the polished ones go on to the ranking, and the message says what the closest reached.
 
 **Damping** comes from the decays: Kelvin-Voigt damping decays every mode (and its harmonics)
-in proportion to tau, so tau is the simulated tau times the recorded-to-simulated ratio of the
-matched decays (geometric mean), kept within a decade of nominal either way.
+in proportion to tau, so tau is the simulated tau times the ratio of the strongest matched
+oscillation's recorded decay to the model's, kept within a decade of nominal either way.
 """
 
 from __future__ import annotations
@@ -79,6 +82,12 @@ def frame_invariant(shift):
     return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
 
 
+def planar_rest(scene):
+    """(x, y, theta of the static equilibrium at t = 0, whether its solve converged)."""
+    st = pcrjax.solve_static(scene, throw=False)
+    return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
+
+
 def static_shift(scene):
     """Jitted ``log lengths -> frame_invariant`` of the static equilibrium after the actuators'
     moves relative to the one before (m and rad)."""
@@ -88,13 +97,10 @@ def static_shift(scene):
     )
     after = eqx.tree_at(lambda s: s.actuation, scene, held)
 
-    def planar(s, lengths):
-        st = pcrjax.solve_static(experiment.apply(s, {"lengths": lengths}), throw=False)
-        return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
-
     @jax.jit
     def shift(log_lengths):
-        (a, ok_a), (b, ok_b) = planar(scene, jnp.exp(log_lengths)), planar(after, jnp.exp(log_lengths))
+        lengths = {"lengths": jnp.exp(log_lengths)}
+        (a, ok_a), (b, ok_b) = planar_rest(experiment.apply(scene, lengths)), planar_rest(experiment.apply(after, lengths))
         return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
 
     return shift
@@ -103,10 +109,10 @@ def static_shift(scene):
 class Features:
     """The recording's features and the model's, for lengths ``x`` (logs).
 
-    ``recorded``: the recording's frequencies (Hz, as filmed) and decays of its strongest
-    oscillations after the forcing, or its static response to the move; ``weights``: their share
-    of the strength; ``of(x)``: the model's features matched to them one by one, NaN where its
-    simulation fails."""
+    ``recorded``: the frequencies (Hz, as filmed) of the recording's strongest oscillations after
+    the forcing and the strong ones' shapes, or its static response to the move; ``weights``:
+    their share of the strength; ``of(x)``: the model's features matched to them one by one, NaN
+    where the model fails."""
 
     def __init__(self, problem, theta):
         self.problem, self.theta = problem, np.array(theta, float)
@@ -151,8 +157,8 @@ class Features:
         )
 
     def simulated(self, x):
-        """(physical frequencies Hz, decays 1/s, strengths) of the model's free motion at log
-        lengths ``x`` (None: theta's), the strongest first; None where the simulation fails."""
+        """(physical frequencies Hz, decays 1/s, strengths, shapes) of the model's free motion at
+        log lengths ``x`` (None: theta's), the strongest first; None where the simulation fails."""
         th = self.theta.copy()
         if x is not None:
             th[self.i_len] = x
@@ -253,10 +259,10 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         polished = list(pool.map(polish, cands[ok[:n_polish]]))
-    matched, dists = [], []
-    for x, _ in polished:
-        d = feats.distance(feats.of(x))
-        dists.append(d)
+    reached = [feats.of(x) for x, _ in polished]
+    dists = [feats.distance(f) for f in reached]
+    matched = []
+    for (x, _), d in zip(polished, dists):
         if (
             d < MATCH
             and np.all(np.abs(np.exp(x) - L0) <= 1.5 * prior_length)
@@ -265,11 +271,10 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             matched.append(x)
     say(f"start: {len(polished)} closest polished: {len(matched)} distinct sets of lengths match the features to {MATCH:.0%}")
     if not matched:
-        best = int(np.argmin(dists)) if dists else None
-        reached = feats.of(polished[best][0]) if best is not None else found[ok[0]]
+        closest = reached[int(np.argmin(dists))] if dists else found[ok[0]]
         say(
             f"start: no lengths within the prior match the recorded features {np.round(feats.recorded, 4).tolist()} to {MATCH:.0%}; "
-            f"the closest reach {np.round(reached, 4).tolist()}: going on from the polished ones"
+            f"the closest reach {np.round(closest, 4).tolist()}: going on from the polished ones"
         )
         matched = [x for x, _ in polished] or [cands[ok[0]]]
     if "tau" in problem.slices:
@@ -310,8 +315,7 @@ def platform_modes(scene):
         s = eqx.tree_at(
             lambda s: (s.load.force, s.load.moment), s, (jnp.zeros(3).at[:2].set(wrench[:2]), jnp.zeros(3).at[2].set(wrench[2]))
         )
-        st = pcrjax.solve_static(s, throw=False)
-        return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
+        return planar_rest(s)
 
     @jax.jit
     def modes_of(log_lengths):
