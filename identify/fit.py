@@ -41,7 +41,7 @@ import numpy as np
 
 import pcrjax
 
-from . import camera, experiment, start
+from . import camera, discretisation, experiment, start
 from .recording import Recording, RecordingError
 
 PHYSICAL = ("tau", "tau_per_rod", "lengths")
@@ -159,6 +159,22 @@ class Problem:
             v = jnp.exp(x) if u.log else x * u.unit
             vals[u.name] = v[0] if u.size == 1 else v
         return vals
+
+    def refined(self, **solver) -> "Problem":
+        """This problem on another discretisation (`pcrjax.with_solver` settings: nodes, dt,
+        tol), with the same noise levels and frames counted."""
+        out = Problem(self.rec, self.fit, scene=pcrjax.with_solver(self.scene, **solver))
+        out.sigma, out.keep = np.array(self.sigma), self.keep.copy()
+        return out
+
+    def reported(self, theta) -> dict:
+        """name -> value (float64 array) of every unknown at ``theta``, and the pattern frame's
+        offset and rotation derived from the model's pose at t = 0 (one short rollout)."""
+        vals = self.to_values(jnp.asarray(theta))
+        out = {u.name: np.atleast_1d(np.asarray(vals[u.name], float)) for u in self.unknowns}
+        offset, rotation = frame_transform(jnp.asarray(self.motion(theta, 0.0)[0]), vals)
+        out.update(frame_offset=np.asarray(offset, float), frame_rotation=np.atleast_1d(np.asarray(rotation, float)))
+        return out
 
     def labels(self) -> list[str]:
         out = []
@@ -315,6 +331,12 @@ class Result:
     history: list = dataclasses.field(default_factory=list)  # loss per iteration (all stages)
     stages: list = dataclasses.field(default_factory=list)  # per stage: window, iterations, final loss
     message: str = ""
+    # the model error of the values (`discretisation`): how far each moved on the last grid
+    # refinement and with a tenth of the Newton tolerance; the model the values come from
+    discretisation_errors: dict = dataclasses.field(default_factory=dict)
+    tolerance_errors: dict = dataclasses.field(default_factory=dict)
+    model: dict = dataclasses.field(default_factory=dict)  # nodes, dt, tol
+    refinements: list = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -506,7 +528,13 @@ def windows(duration: float, first: float = 0.1) -> list:
 
 
 def fit(
-    problem: Problem, max_iter=30, state_dir: Path | None = None, progress=None, first_window: float = 0.1, modal: bool = True
+    problem: Problem,
+    max_iter=30,
+    state_dir: Path | None = None,
+    progress=None,
+    first_window: float = 0.1,
+    modal: bool = True,
+    refine_levels: int = 2,
 ) -> Result:
     """Fit by continuation in the recording's length, then once more with estimated noise levels.
 
@@ -517,6 +545,8 @@ def fit(
     estimated from the first pass's residuals (feasible generalised least squares). Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
+    Then the model error of the answer is measured on finer models (`discretisation.report`,
+    up to ``refine_levels`` grid refinements; 0: none) and the values are those of the finest.
     """
     t0 = time.perf_counter()
     duration = float(problem.t[-1] - problem.t[0])
@@ -619,18 +649,22 @@ def fit(
         history += hist
         summary.append(dict(stage=label, iterations=it, loss=hist[-1], converged=bool(converged)))
         save(dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0), k + 1)
-    return summarize(
-        problem,
-        theta,
-        J,
-        r,
-        t_end=None,
-        iterations=total_it,
-        wall_s=time.perf_counter() - t0,
-        converged=converged,
-        history=history,
-        stages=summary,
+    if J is None:  # resumed after the last pass: its Jacobian once more
+        r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
+        converged = True
+    result = summarize(
+        problem, theta, J, r, t_end=None, iterations=total_it, converged=converged, history=history, stages=summary
     )
+    if refine_levels > 0:
+        result = discretisation.report(
+            problem, theta, J, result, refine_levels, None if progress is None else (lambda msg: progress(msg, 0, None, 0.0))
+        )
+    return dataclasses.replace(result, wall_s=time.perf_counter() - t0)
+
+
+def standard_errors_theta(J, chi2: float):
+    """Standard errors of theta from the Gauss-Newton covariance rescaled by ``chi2``."""
+    return np.sqrt(np.maximum(np.diag(_covariance(J) * chi2), 0.0))
 
 
 def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
