@@ -30,6 +30,7 @@ import numpy as np
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
 CHORD_ITER = 6
+STILL = 0.05  # a chord step below this fraction of every standard error ends the refit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,13 +65,14 @@ class Level:
 def chord_refit(problem, theta, J, sigma, max_iter: int = CHORD_ITER, se_theta=None):
     """(theta, cost, iterations) minimising ``problem``'s residuals over the whole recording
     from ``theta`` with the Jacobian ``J`` held (of another discretisation of the same
-    problem). Stops when no unknown moves by more than 1 % of its standard error ``se_theta``
-    (1e-6 in theta if None). Raises `FitError` where the refined model's rollout fails."""
+    problem). Stops when no unknown moves by more than ``STILL`` of its standard error
+    ``se_theta`` (1e-6 in theta if None). Raises `FitError` where the refined model's rollout
+    fails."""
     from .fit import FitError
 
     theta = np.asarray(theta, float)
     sigma = jnp.asarray(sigma)
-    floor = 1e-6 if se_theta is None else 1e-2 * np.maximum(se_theta, 1e-12)
+    floor = 1e-6 if se_theta is None else STILL * np.maximum(se_theta, 1e-12)
     for it in range(1, max_iter + 1):
         r = np.asarray(problem.residual(theta, sigma))
         if not np.all(np.isfinite(r)):

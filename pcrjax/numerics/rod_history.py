@@ -52,13 +52,14 @@ def rest(co: bdf_alpha.Coefficients, z_nodes, z_stages) -> RodHistory:
     return RodHistory(bdf_alpha.rest_history(co, z_nodes), bdf_alpha.rest_history(co, z_stages))
 
 
-def advance(co: bdf_alpha.Coefficients, hist: RodHistory, z_nodes, z_stages, z_prev_nodes) -> RodHistory:
-    """History for the next step from this step's values at nodes and stages.
+def advance(co: bdf_alpha.Coefficients, hist: RodHistory, z_nodes, z_stages, z_prev_nodes, now=None) -> RodHistory:
+    """History for the next step (scheme ``co``) from this step's values at nodes and stages
+    (this step's scheme ``now``, default ``co``).
 
     Nodes follow the BDF-alpha recurrence; stage points get $g$ interpolated from the nodes minus
     $c_0$ times their own value.
     """
-    h_nodes = bdf_alpha.next_history(co, z_nodes, z_prev_nodes, hist.nodes)
+    h_nodes = bdf_alpha.next_history(co, z_nodes, z_prev_nodes, hist.nodes, now)
     if z_stages.shape[1] == 0:
         return RodHistory(h_nodes, hist.stages)
     g = co.c0 * z_nodes + h_nodes
@@ -98,9 +99,10 @@ def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, ds,
     return nodes, z, rest(co, z, z_st)
 
 
-def after_step(co: bdf_alpha.Coefficients, hist: RodHistory, k, effects, nodes, stages, z_prev):
-    """``(z, next history)`` from a solved step's ``nodes`` (N+1, 24) and RK4 ``stages`` (N, 3, 24)."""
+def after_step(co: bdf_alpha.Coefficients, hist: RodHistory, k, effects, nodes, stages, z_prev, now=None):
+    """``(z, next history)`` from a solved step's ``nodes`` (N+1, 24) and RK4 ``stages`` (N, 3, 24)
+    (the next step's scheme ``co``; this step's ``now``, default ``co``)."""
     kin = lambda y, h: kinematic_state(y, h, k, effects)  # noqa: E731
     z = jax.vmap(kin)(nodes, hist.nodes)
     z_st = jax.vmap(jax.vmap(kin))(stages, hist.stages)
-    return z, advance(co, hist, z, z_st, z_prev)
+    return z, advance(co, hist, z, z_st, z_prev, now)

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..numerics import bdf_alpha
 from ..numerics.rod_history import RodHistory
 from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, shoot_jacobian, unknowns_from_nodes
 from ..numerics.spatial import Rods
@@ -36,9 +37,12 @@ def layout(scene, inertia: bool) -> Layout:
     return Layout(nodes=s.grid_nodes, segments=s.segments if inertia else 1, inertia=inertia)
 
 
-def scales(scene, c0=None):
-    """Units of the unknowns and residuals, from the first leg's rod (`shooting.make_scales`)."""
-    return make_scales(scene.legs.first_rod(), c0)
+def scales(scene, dynamic: bool = False):
+    """Units of the unknowns and residuals, from the first leg's rod (`shooting.make_scales`);
+    in dynamics the rates' units use BDF-alpha's $c_0$ at every step (also the first, which is
+    backward Euler: the unknowns of successive steps must mean the same)."""
+    s = scene.solver
+    return make_scales(scene.legs.first_rod(), bdf_alpha.coefficients(s.dt, s.alpha).c0 if dynamic else None)
 
 
 def leg_rotations(lay: Layout, nodes):
@@ -68,7 +72,7 @@ class Problem:
         self.P = scene.end.pose_size(scene.effects)
         self.S = self.layout.size
         self.n = scene.legs.count
-        self.sc = scales(scene, c0 if inertia else None)
+        self.sc = scales(scene, inertia)
         legs = scene.legs
         self.k = jax.vmap(lambda rod: coefficients(rod, self.effects, c0, gravity))(legs.rod)
         self.ds = legs.lengths(a) / scene.solver.grid_nodes

@@ -35,6 +35,7 @@ class StepState(eqx.Module):
     unknowns: jnp.ndarray  # (2, size): steps i-1 and i-2, both relative to step i-1's rotations
     jac: newton.Jacobian
     has_jac: jnp.ndarray
+    started: jnp.ndarray  # False before the first step (backward Euler: `bdf_alpha.starting`)
 
 
 class StepOutput(eqx.Module):
@@ -47,22 +48,26 @@ class StepOutput(eqx.Module):
     stats: newton.Stats
 
 
-def _coefficients(scene):
+def _coefficients(scene, state: StepState | None = None):
+    """BDF-alpha's coefficients, or those of the step that ``state`` starts (`bdf_alpha.starting`
+    for the first)."""
     s = scene.solver
-    return bdf_alpha.coefficients(s.dt, s.alpha)
+    if state is None:
+        return bdf_alpha.coefficients(s.dt, s.alpha)
+    return bdf_alpha.step_coefficients(s.dt, s.alpha, ~state.started)
 
 
 def initial_step_state(scene, static: StaticSolution, inverse_dynamics: bool = False) -> StepState:
     """Rest at the static equilibrium: rods, end and actuators at rest forever. With
     ``inverse_dynamics`` the unknowns are those of inverse dynamics (actuators for the pose)."""
     s = scene.solver
-    co = _coefficients(scene)
+    co = bdf_alpha.starting(s.dt)  # the first step's scheme: the rest history is -c0 z
     a = static.actuators
     ds = scene.legs.lengths(a) / s.grid_nodes
     nodes, z, history = rod_history.at_rest(co, scene.legs.rod, scene.effects, scene.gravity, static.nodes, ds, s.integrator)
     memory = scene.end.rest_memory(static.position, static.rotation, co)
     lay = assembly.layout(scene, True)
-    sc = assembly.scales(scene, co.c0)
+    sc = assembly.scales(scene, True)
     if inverse_dynamics:
         x = _inverse_unknowns(lay, sc, nodes, jnp.zeros_like(a))
     else:
@@ -78,6 +83,7 @@ def initial_step_state(scene, static: StaticSolution, inverse_dynamics: bool = F
         unknowns=jnp.stack([x, x]),
         jac=newton.Jacobian.empty(x.shape[0]),
         has_jac=jnp.asarray(False),
+        started=jnp.asarray(False),
     )
 
 
@@ -145,7 +151,7 @@ def step(scene, state: StepState, t, path=None):
     (`signals.PosePath`) the end follows it and the actuator values are solved for (the state
     must then come from ``initial_step_state(..., inverse_dynamics=True)``)."""
     s = scene.solver
-    co = _coefficients(scene)
+    co, co_next = _coefficients(scene, state), _coefficients(scene)
     form = _Forward(scene, state, t, co) if path is None else _Inverse(scene, state, t, co, path)
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
@@ -153,9 +159,9 @@ def step(scene, state: StepState, t, path=None):
     x, jac, stats = newton.solve(form.prob.residual, form.prob.jacobian, state.jac, s.newton, start)
     prob, body, xl, a = form.solution(x)
     _, tips, nodes, stages = prob.legs(xl, return_stages=True)
-    after = lambda h, k, nd, st, zp: rod_history.after_step(co, h, k, scene.effects, nd, st, zp)  # noqa: E731
+    after = lambda h, k, nd, st, zp: rod_history.after_step(co_next, h, k, scene.effects, nd, st, zp, co)  # noqa: E731
     z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
-    memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co)
+    memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co_next)
     p, R = scene.end.output_pose(body, tips)
     # Unknowns of this step and the last, relative to this step's rotations, so that the next
     # step's extrapolation compares like with like.
@@ -166,10 +172,11 @@ def step(scene, state: StepState, t, path=None):
         history=history,
         memory=memory,
         a1=a,
-        ah=co.c1 * a + co.c2 * state.a1 + co.d1 * (co.c0 * a + state.ah),
+        ah=bdf_alpha.next_history(co_next, a, state.a1, state.ah, co),
         unknowns=jax.lax.stop_gradient(jnp.stack([x_rel, x_prev_rel])),
         jac=jax.lax.stop_gradient(jac),
         has_jac=jnp.asarray(True),
+        started=jnp.asarray(True),
     )
     energy = _rods_energy(scene, prob, nodes, z) + end_energy
     out = StepOutput(
@@ -186,8 +193,7 @@ def step(scene, state: StepState, t, path=None):
 
 def rest_energy(scene, state: StepState, static: StaticSolution):
     """Total energy of the initial rest state (rods' elastic energy, weights' and loads' potential)."""
-    co = _coefficients(scene)
-    prob = _problem(scene, state, co, state.a1, jnp.zeros(()))
+    prob = _problem(scene, state, _coefficients(scene, state), state.a1, jnp.zeros(()))
     return _rods_energy(scene, prob, state.nodes, state.z_prev) + scene.end.rest_energy(
         prob.cfg, state.memory, static.nodes[:, -1]
     )

@@ -284,9 +284,10 @@ class RigidPlatform(AbstractEnd):
         return body_pose[0], body_pose[1]
 
     def advance(self, cfg, memory, body_pose, tips, co):
-        """(next memory, energy of the platform: kinetic minus the weight's work)."""
+        """(next memory for the next step's scheme ``co``, energy of the platform: kinetic minus
+        the weight's work); the rates are this step's (its scheme ``cfg.co``)."""
         p, R, dp, theta = body_pose
-        r = rigid.rates(co, memory, dp, theta)
+        r = rigid.rates(cfg.co, memory, dp, theta)
         return rigid.advance(co, memory, p, R, dp, r), rigid.kinetic_energy(self.body, r) - jnp.dot(cfg.weight, p)
 
     def rest_energy(self, cfg, memory, tips):

@@ -54,7 +54,7 @@ class InverseProblem:
     def __init__(self, scene, inertia: bool, a_ref, ah, gravity, history, leg_R_ref, c0, cfg, p, R):
         self.scene, self.inertia, self.a_ref, self.ah = scene, inertia, a_ref, ah
         self.gravity, self.history, self.leg_R_ref, self.c0, self.cfg = gravity, history, leg_R_ref, c0, cfg
-        self.sc = assembly.scales(scene, c0 if inertia else None)
+        self.sc = assembly.scales(scene, inertia)
         base = self.problem(jnp.zeros_like(a_ref))
         self.n, self.S = base.n, base.S
         self.xp = scene.end.pose_unknowns(p, R, cfg.p_prev, cfg.R_prev, scene.effects.planar, base.sc)
