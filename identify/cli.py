@@ -28,6 +28,19 @@ def _parser():
     p.add_argument("--out", default="out/identify", help="output folder")
     p.add_argument("--max-iter", type=int, default=30, help="Levenberg-Marquardt iterations per pass")
     p.add_argument("--tau0", type=float, help="initial damping time (s; default: the scene's)")
+    p.add_argument(
+        "--start",
+        choices=("modal", "given"),
+        default="modal",
+        help="modal: search the prior for the recording's modes (default); given: start from the scene's values and --tau0",
+    )
+    p.add_argument(
+        "--refine",
+        type=int,
+        default=2,
+        metavar="LEVELS",
+        help="grid refinements (2x nodes, dt/2 each) that measure the discretisation error (default 2; 0: none)",
+    )
     return p
 
 
@@ -104,19 +117,65 @@ def run(args) -> dict:
             return
         print(f"  {stage}: iteration {it:3d}: loss {cost:.6g}, largest step {step:.3g}", flush=True)
 
-    result = fit(problem, max_iter=args.max_iter, state_dir=out, progress=progress)
+    if args.refine < 0:
+        raise ValueError(f"--refine must be 0 or more, got {args.refine}")
+    result = fit(
+        problem, max_iter=args.max_iter, state_dir=out, progress=progress, modal=args.start == "modal", refine_levels=args.refine
+    )
     seen = np.asarray(problem.seen(problem.to_theta(_as_arrays(result.values))))
-    payload = dict(recording=str(rec.path), fit=problem.fit, **result.to_json())
+    payload = dict(recording=str(rec.path), fit=problem.fit, units=UNITS, **result.to_json())
     (out / "fit.json").write_text(json.dumps(payload, indent=2))
     _plots(out, rec, seen, result)
     for name, v in result.values.items():
-        print(f"{name:>15} = {v}  ± {result.standard_errors[name]}")
+        print(f"{name:>15} = {format_value(name, v, result.standard_errors[name], result.discretisation_errors.get(name))}")
+    if result.model:
+        m = result.model
+        print(
+            f"values from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s, Newton tolerance {m['tol']:.0e}; "
+            "± statistical (noise), ± discretisation (the last grid refinement's move)"
+        )
+    if result.message:
+        print(f"note: {result.message}")
     print(
         f"loss (reduced chi-square) {result.loss:.4g}, noise {result.sigma[0]:.3g} m, {result.sigma[1]:.3g} rad; "
         f"{result.iterations} iterations, {result.wall_s:.1f} s; {'converged' if result.converged else 'NOT converged'}"
     )
     (out / "fit_state.json").unlink(missing_ok=True)  # done: a new run starts afresh
     return payload
+
+
+UNITS = dict(
+    tau="s",
+    lengths="m",
+    push_force="N",
+    push_moment="N m",
+    start_position="m",
+    start_angle="rad",
+    time_offset="s",
+    frame_offset="m",
+    frame_rotation="rad",
+)
+PREFIXES = ((1e-9, "n"), (1e-6, "µ"), (1e-3, "m"), (1.0, ""))
+
+
+def format_value(name, value, se, disc=None) -> str:
+    """``value ± se [± disc] unit`` in the SI prefix that fits the value, to the digits its
+    smallest uncertainty holds (two significant figures of it)."""
+    v = np.atleast_1d(np.asarray(value, float))
+    errs = [np.atleast_1d(np.asarray(e, float)) for e in (se, disc) if e is not None]
+    unit = UNITS.get(name, "")
+    size = float(np.max(np.abs(v))) or 1.0
+    factor, prefix = next(((f, p) for f, p in reversed(PREFIXES) if size >= f), PREFIXES[0])
+    if unit == "rad" and factor < 1e-3:
+        factor, prefix = (1e-6, "µ")
+    smallest = min((float(np.min(e[e > 0])) for e in errs if np.any(e > 0)), default=size * 1e-6) / factor
+    decimals = max(0, 1 - int(np.floor(np.log10(smallest))))
+
+    def show(a):
+        a = a / factor
+        return f"{a[0]:.{decimals}f}" if a.size == 1 else "[" + ", ".join(f"{x:.{decimals}f}" for x in a) + "]"
+
+    return " ± ".join([show(v)] + [show(e) for e in errs]) + f" {prefix}{unit}"
 
 
 def _as_arrays(values):
