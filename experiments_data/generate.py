@@ -202,7 +202,9 @@ def random_suite(seed: int = 2026) -> dict:
 
 RECORDINGS.update(random_suite())
 for _spec in RECORDINGS.values():
-    _spec["truth_solver"] = dict(_spec["solver"], nodes=_spec["solver"]["nodes"] * FINER["nodes"], dt=_spec["solver"]["dt"] / FINER["dt"])
+    _spec["truth_solver"] = dict(
+        _spec["solver"], nodes=_spec["solver"]["nodes"] * FINER["nodes"], dt=_spec["solver"]["dt"] / FINER["dt"]
+    )
 
 CAMERA_TRUTH = ("frame_offset", "frame_rotation", "time_offset")
 SENSOR = ("noise_position", "noise_angle", "missing_fraction", "seed")

@@ -137,9 +137,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     worst = float(np.max(np.abs(grids[-1].move_se)))
     if worst > THIRD:
         label = problem.labels()[int(np.argmax(np.abs(grids[-1].move_se)))]
-        message = (
-            f"{message} " if message else ""
-        ) + (
+        message = (f"{message} " if message else "") + (
             f"the last grid refinement (to {grids[-1].nodes} nodes, dt {grids[-1].dt:.3g} s) still moved {label} by "
             f"{worst:.2g} standard errors (more than {THIRD:.2f}): the discretisation error is not negligible; "
             "a finer [solver] grid in the sidecar would settle it"

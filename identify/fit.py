@@ -160,7 +160,7 @@ class Problem:
             vals[u.name] = v[0] if u.size == 1 else v
         return vals
 
-    def refined(self, **solver) -> "Problem":
+    def refined(self, **solver) -> Problem:
         """This problem on another discretisation (`pcrjax.with_solver` settings: nodes, dt,
         tol), with the same noise levels and frames counted."""
         out = Problem(self.rec, self.fit, scene=pcrjax.with_solver(self.scene, **solver))
