@@ -87,14 +87,16 @@ def chord_refit(problem, theta, J, sigma, max_iter: int = CHORD_ITER, se_theta=N
     return theta, 0.5 * float(r @ r), it
 
 
-def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=None) -> list:
-    """The `Level` list (the tolerance refit first, then the grids) for the fit ``problem`` at
-    its optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta, noise
-    ``sigma``). ``progress(message)``."""
+def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=None):
+    """(the `Level` list: the tolerance refit first, then the grids; the failures: a refit whose
+    rollout failed ends the list) for the fit ``problem`` at its optimum ``theta`` (Jacobian
+    ``J``, standard errors ``se_theta`` of theta, noise ``sigma``). ``progress(message)``."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tol = solver.nodes, float(solver.dt), float(solver.newton.tol)
-    levels, base_theta = [], np.asarray(theta, float)
+    from .fit import FitError
+
+    levels, base_theta, failed = [], np.asarray(theta, float), []
     plan = [("tolerance", nodes, dt, tol * TOL_FACTOR)]
     plan += [("grid", nodes * 2**k, dt / 2**k, tol * TOL_FACTOR) for k in range(1, max_levels + 1)]
     for what, n, h, tl in plan:
@@ -102,7 +104,11 @@ def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=Non
         if progress is not None:
             progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} (discretisation error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
-        th, cost, it = chord_refit(fine, base_theta, J, sigma, se_theta=se_theta)
+        try:
+            th, cost, it = chord_refit(fine, base_theta, J, sigma, se_theta=se_theta)
+        except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
+            failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
+            break
         move = (th - base_theta) / np.maximum(se_theta, 1e-300)
         levels.append(Level(what, n, h, tl, th, move, 2 * cost / max(m, 1), it, time.perf_counter() - t0, fine))
         if progress is not None:
@@ -112,7 +118,7 @@ def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=Non
         base_theta = th
         if np.max(np.abs(move)) <= THIRD:
             break
-    return levels
+    return levels, failed
 
 
 def _difference(a: dict, b: dict) -> dict:
@@ -126,14 +132,16 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     moved a value by more than a third of its standard error."""
     from .fit import standard_errors_theta
 
-    levels = refine(problem, theta, J, standard_errors_theta(J, result.loss), problem.sigma, max_levels, progress)
+    levels, failed = refine(problem, theta, J, standard_errors_theta(J, result.loss), problem.sigma, max_levels, progress)
+    message = " ".join([result.message, *failed]).strip()
+    if len(levels) < 2:  # no grid refinement came through: the fit's own values, no error measured
+        return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
     at_fit = problem.reported(theta)
     tol, grids = levels[0], levels[1:]
     coarse = grids[-2] if len(grids) > 1 else None
     before = at_fit if coarse is None else coarse.problem.reported(coarse.theta)
     finest = grids[-1].problem.reported(grids[-1].theta)
     values = {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in finest.items()}
-    message = result.message
     worst = float(np.max(np.abs(grids[-1].move_se)))
     if worst > THIRD:
         label = problem.labels()[int(np.argmax(np.abs(grids[-1].move_se)))]
