@@ -137,6 +137,16 @@ def _camera_truth(rng, seed: int) -> dict:
     )
 
 
+def _start_tau(rng, tau: float) -> dict:
+    """The sidecar's [rod] table: the damping a fit starts from, a factor 3 off ``tau`` either way."""
+    return dict(tau=round(float(tau * 3.0 ** rng.choice([-1, 1])), 7))
+
+
+def _as_recorded(rng, push) -> list:
+    """The push as the sidecar records it: each component within PUSH_ERROR of the truth's."""
+    return [p * (1 + rng.uniform(-PUSH_ERROR, PUSH_ERROR)) for p in push]
+
+
 def random_suite(seed: int = 2026) -> dict:
     """Recordings whose truths are drawn (with ``seed``) inside the prior, two of each kind:
     Triskele push-release and actuator step, and the cantilever released from a tip load."""
@@ -147,13 +157,13 @@ def random_suite(seed: int = 2026) -> dict:
         lengths = np.round(0.032 + rng.uniform(-PRIOR_LENGTH, PRIOR_LENGTH, 3), 6).tolist()
         angle, size = rng.uniform(0, 2 * np.pi), rng.uniform(0.012, 0.025)
         push = [size * np.cos(angle), size * np.sin(angle), float(rng.choice([-1, 1]) * rng.uniform(1e-4, 4e-4))]
-        told = [p * (1 + rng.uniform(-PUSH_ERROR, PUSH_ERROR)) for p in push]
+        told = _as_recorded(rng, push)
         base = RECORDINGS["triskele_push_release"]
         out[f"triskele_push_release_r{k}"] = dict(
             base,
             description=f"Triskele-bot push-release, truth drawn at random inside the prior (suite seed {seed}), "
             "simulated on a grid 3x finer in space, 5x in time.",
-            rod=dict(tau=round(float(tau * 3.0 ** rng.choice([-1, 1])), 7)),
+            rod=_start_tau(rng, tau),
             load=dict(force=np.round(told[:2], 5).tolist() + [0.0], moment=[0.0, 0.0, round(told[2], 6)], release_time=0.0),
             truth=dict(
                 base["truth"],
@@ -173,20 +183,20 @@ def random_suite(seed: int = 2026) -> dict:
             base,
             description=f"Triskele-bot actuator step (bases by {', '.join(f'{m * 1e6:+.2f}' for m in move)} um in 10 ms at "
             f"0.05 s), truth drawn at random inside the prior (suite seed {seed}), simulated 3x finer in space, 5x in time.",
-            rod=dict(tau=round(float(tau * 3.0 ** rng.choice([-1, 1])), 7)),
+            rod=_start_tau(rng, tau),
             actuation=dict(base["actuation"], final=move),
             truth=dict(base["truth"], tau=round(tau, 7), lengths=lengths, **_camera_truth(rng, seed + 10 * k + 2)),
         )
     for k in (1, 2):
         tau = float(np.exp(rng.uniform(*np.log(TAU_DECADE["cantilever"]))))
         push = [rng.uniform(-0.2, 0.2), -rng.uniform(1.5, 2.5)]
-        told = [p * (1 + rng.uniform(-PUSH_ERROR, PUSH_ERROR)) for p in push]
+        told = _as_recorded(rng, push)
         base = RECORDINGS["cantilever_release"]
         out[f"cantilever_release_r{k}"] = dict(
             base,
             description=f"Cantilever released from a tip load, truth drawn at random inside the prior (suite seed {seed}), "
             "simulated 3x finer in space, 5x in time.",
-            rod=dict(tau=round(float(tau * 3.0 ** rng.choice([-1, 1])), 7)),
+            rod=_start_tau(rng, tau),
             tip=dict(force=[round(told[0], 4), 0.0, round(told[1], 4)], moment=[0.0, 0.0, 0.0], release_time=0.0),
             truth=dict(
                 base["truth"],

@@ -68,7 +68,7 @@ def chord_refit(problem, theta, J, sigma, max_iter: int = CHORD_ITER, se_theta=N
     problem). Stops when no unknown moves by more than ``STILL`` of its standard error
     ``se_theta`` (1e-6 in theta if None). Raises `FitError` where the refined model's rollout
     fails."""
-    from .fit import FitError
+    from .fit import FitError  # fit imports this module
 
     theta = np.asarray(theta, float)
     sigma = jnp.asarray(sigma)
@@ -91,11 +91,11 @@ def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=Non
     """(the `Level` list: the tolerance refit first, then the grids; the failures: a refit whose
     rollout failed ends the list) for the fit ``problem`` at its optimum ``theta`` (Jacobian
     ``J``, standard errors ``se_theta`` of theta, noise ``sigma``). ``progress(message)``."""
+    from .fit import FitError
+
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tol = solver.nodes, float(solver.dt), float(solver.newton.tol)
-    from .fit import FitError
-
     levels, base_theta, failed = [], np.asarray(theta, float), []
     plan = [("tolerance", nodes, dt, tol * TOL_FACTOR)]
     plan += [("grid", nodes * 2**k, dt / 2**k, tol * TOL_FACTOR) for k in range(1, max_levels + 1)]

@@ -648,10 +648,10 @@ def fit(
         total_it += it
         history += hist
         summary.append(dict(stage=label, iterations=it, loss=hist[-1], converged=bool(converged)))
-        save(dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0), k + 1)
-    if J is None:  # resumed after the last pass: its Jacobian once more
+        save(dict(theta=theta.tolist(), lam=1e-3, history=[], iteration=0, converged=bool(converged)), k + 1)
+    if J is None:  # resumed after the last pass: its Jacobian once more, and whether it converged
         r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
-        converged = True
+        converged = bool(resume.get("converged", False))
     result = summarize(
         problem, theta, J, r, t_end=None, iterations=total_it, converged=converged, history=history, stages=summary
     )
