@@ -8,12 +8,13 @@ unknown delay between the actuator command and the first frame, sensor noise of 
 microradians, and a few percent of frames that failed to decode (absent rows). Each CSV's
 sidecar says ``synthetic = true`` and holds every generating number and the seed.
 
-No recording is the fit's own model: each truth is simulated on a grid 3x finer in space and 5x
-in time than the sidecar's solver settings (the ones a fit uses; ``[provenance] truth_nodes``,
-``truth_dt``), so a fit meets the discretisation error it would meet on a real log. The
-random-truth suite (`random_suite`, names ending ``_r1``, ``_r2``) draws its truths, seeded,
-inside the prior a fit is promised to hold in (each length within 2 mm of nominal, the damping
-time anywhere in a decade, the push within 10 % of the recorded one).
+The first three are simulated with the solver settings written in the sidecar (the ones a fit
+uses), so a fit can recover them to the noise level. The random-truth suite (`random_suite`,
+names ending ``_r1``, ``_r2``) is not the fit's own model: its truths are drawn, seeded, inside
+the prior a fit is promised to hold in (each length within 2 mm of nominal, the damping time
+anywhere in a decade, the push within 10 % of the recorded one) and simulated on a grid 3x finer
+in space and 5x in time than the sidecar's (``[provenance] truth_nodes``, ``truth_dt``), so a
+fit meets the discretisation error it would meet on a real log.
 """
 
 from __future__ import annotations
@@ -207,14 +208,13 @@ def random_suite(seed: int = 2026) -> dict:
                 frame_offset=[round(float(rng.uniform(-0.25, -0.15)), 5), round(float(rng.uniform(-0.02, 0.02)), 5)],
             ),
         )
+    for spec in out.values():
+        solver = spec["solver"]
+        spec["truth_solver"] = dict(solver, nodes=solver["nodes"] * FINER["nodes"], dt=solver["dt"] / FINER["dt"])
     return out
 
 
 RECORDINGS.update(random_suite())
-for _spec in RECORDINGS.values():
-    _spec["truth_solver"] = dict(
-        _spec["solver"], nodes=_spec["solver"]["nodes"] * FINER["nodes"], dt=_spec["solver"]["dt"] / FINER["dt"]
-    )
 
 CAMERA_TRUTH = ("frame_offset", "frame_rotation", "time_offset")
 SENSOR = ("noise_position", "noise_angle", "missing_fraction", "seed")

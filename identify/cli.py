@@ -37,9 +37,9 @@ def _parser():
     p.add_argument(
         "--refine",
         type=int,
-        default=2,
+        default=0,
         metavar="LEVELS",
-        help="grid refinements (2x nodes, dt/2 each) that measure the discretisation error (default 2; 0: none)",
+        help="grid refinements (2x nodes, dt/2 each) that measure the discretisation error (default 0: none; 2 measures it)",
     )
     return p
 

@@ -12,7 +12,10 @@ fit the recording is refitted from the optimum:
 
 The reported values are those of the finest grid evaluated, and the discretisation error beside
 each is its last move (for a convergent scheme, a bound on the finest grid's own error); if the
-last move still exceeds a third of the standard error, the result says so.
+last move still exceeds a third of the standard error, the result says so. The noise levels
+were estimated from the fit's residuals, which hold the coarse grid's model error too; they and
+the standard errors are rescaled by the finest grid's reduced chi-square (one factor for all
+columns), so the standard errors are the noise's alone.
 
 Each refit holds the fit's Jacobian (the chord method: Gauss-Newton with the Jacobian of the
 coarse model): a finer grid moves the residuals by far more than their derivatives, so an
@@ -87,10 +90,12 @@ def chord_refit(problem, theta, J, sigma, max_iter: int = CHORD_ITER, se_theta=N
     return theta, 0.5 * float(r @ r), it
 
 
-def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=None):
+def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=None, chi2: float = 1.0):
     """(the `Level` list: the tolerance refit first, then the grids; the failures: a refit whose
     rollout failed ends the list) for the fit ``problem`` at its optimum ``theta`` (Jacobian
-    ``J``, standard errors ``se_theta`` of theta, noise ``sigma``). ``progress(message)``."""
+    ``J``, standard errors ``se_theta`` of theta at its reduced chi-square ``chi2``, noise
+    ``sigma``); each move is in the standard errors of its own grid (rescaled by its reduced
+    chi-square). ``progress(message)``."""
     from .fit import FitError
 
     m = problem.counted(None) - theta.size
@@ -109,8 +114,9 @@ def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=Non
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
             break
-        move = (th - base_theta) / np.maximum(se_theta, 1e-300)
-        levels.append(Level(what, n, h, tl, th, move, 2 * cost / max(m, 1), it, time.perf_counter() - t0, fine))
+        chi2_here = 2 * cost / max(m, 1)
+        move = (th - base_theta) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
+        levels.append(Level(what, n, h, tl, th, move, chi2_here, it, time.perf_counter() - t0, fine))
         if progress is not None:
             progress(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {levels[-1].chi2:.4g}")
         if what == "tolerance":
@@ -132,7 +138,9 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     moved a value by more than a third of its standard error."""
     from .fit import standard_errors_theta
 
-    levels, failed = refine(problem, theta, J, standard_errors_theta(J, result.loss), problem.sigma, max_levels, progress)
+    levels, failed = refine(
+        problem, theta, J, standard_errors_theta(J, result.loss), problem.sigma, max_levels, progress, result.loss
+    )
     message = " ".join([result.message, *failed]).strip()
     if len(levels) < 2:  # no grid refinement came through: the fit's own values, no error measured
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
@@ -142,6 +150,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     before = at_fit if coarse is None else coarse.problem.reported(coarse.theta)
     finest = grids[-1].problem.reported(grids[-1].theta)
     values = {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in finest.items()}
+    noise = np.sqrt(grids[-1].chi2 / result.loss)  # the residuals' scale on the finest grid vs the fit's
     worst = float(np.max(np.abs(grids[-1].move_se)))
     if worst > THIRD:
         label = problem.labels()[int(np.argmax(np.abs(grids[-1].move_se)))]
@@ -153,6 +162,10 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     return dataclasses.replace(
         result,
         values=values,
+        standard_errors={
+            k: (np.asarray(e) * noise).tolist() if np.size(e) > 1 else float(e) * noise for k, e in result.standard_errors.items()
+        },
+        sigma=[s * float(noise) for s in result.sigma],
         discretisation_errors=_difference(finest, before),
         tolerance_errors=_difference(tol.problem.reported(tol.theta), at_fit),
         model=dict(nodes=grids[-1].nodes, dt=grids[-1].dt, tol=grids[-1].tol),

@@ -341,6 +341,10 @@ class Result:
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
 
+    def uncertainty(self, name):
+        """The statistical and discretisation errors of ``name`` combined (root sum of squares)."""
+        return np.hypot(self.standard_errors[name], self.discretisation_errors.get(name, 0.0))
+
 
 def _covariance(J):
     JtJ = J.T @ J
@@ -534,7 +538,7 @@ def fit(
     progress=None,
     first_window: float = 0.1,
     modal: bool = True,
-    refine_levels: int = 2,
+    refine_levels: int = 0,
 ) -> Result:
     """Fit by continuation in the recording's length, then once more with estimated noise levels.
 
