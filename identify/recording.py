@@ -14,10 +14,15 @@ scene the recording belongs to)::
     exposure = 2e-4               # s; each frame averages the motion over its exposure
     synthetic = false             # true for generated recordings, with a [truth] table
     description = "..."
+    [units]                       # the CSV's units (default s, m, rad); the header names them:
+    time = "s"                    #   "s" | "ms"
+    position = "mm"               #   "m" | "mm" | "um" | "nm"   -> header t_s,x_mm,y_mm,theta_deg
+    angle = "deg"                 #   "rad" | "mrad" | "urad" | "deg"
     [solver] [effects] [rod] [actuation] [load] [tip]   # laid over the scene's tables
     [truth]                       # synthetic only: the generating parameters and seed
 
 Everything is validated on load: a bad file raises `RecordingError` naming the file and cause.
+A `Recording` holds SI values (s, m, rad) whatever the file's units.
 """
 
 from __future__ import annotations
@@ -34,7 +39,22 @@ from pcrjax.io.tables import TableError, read_table
 COLUMNS = ("t_s", "x_m", "y_m", "theta_rad")
 EXPERIMENTS = ("push_release", "actuator_step", "release")
 OVERRIDES = ("solver", "effects", "rod", "actuation", "load", "tip")
-SIDECAR_KEYS = {"scene", "experiment", "frame_rate", "exposure", "synthetic", "description", "truth", "provenance", *OVERRIDES}
+SIDECAR_KEYS = {
+    "scene", "experiment", "frame_rate", "exposure", "synthetic", "description", "units", "truth", "provenance", *OVERRIDES
+}  # fmt: skip
+# the [units] a CSV may be written in: name -> SI factor
+UNITS = {
+    "time": {"s": 1.0, "ms": 1e-3},
+    "position": {"m": 1.0, "mm": 1e-3, "um": 1e-6, "nm": 1e-9},
+    "angle": {"rad": 1.0, "mrad": 1e-3, "urad": 1e-6, "deg": math.pi / 180.0},
+}
+SI_UNITS = {"time": "s", "position": "m", "angle": "rad"}
+
+
+def columns(units: dict) -> tuple[str, ...]:
+    """The CSV header for ``units`` (quantity -> unit name; missing: SI)."""
+    u = {**SI_UNITS, **units}
+    return (f"t_{u['time']}", f"x_{u['position']}", f"y_{u['position']}", f"theta_{u['angle']}")
 
 
 class RecordingError(ValueError):
@@ -114,6 +134,7 @@ def read_sidecar(path) -> dict:
     for key in ("description",):
         if key in data:
             out[key] = str(data[key])
+    out["units"] = _units(p, data.get("units", {}))
     for key in OVERRIDES + ("truth", "provenance"):
         if key in data and not isinstance(data[key], dict):
             raise RecordingError(f"{p}: [{key}] must be a table")
@@ -125,18 +146,33 @@ def read_sidecar(path) -> dict:
     return out
 
 
+def _units(p, table) -> dict:
+    if not isinstance(table, dict):
+        raise RecordingError(f"{p}: [units] must be a table")
+    for key, name in table.items():
+        if key not in UNITS:
+            raise RecordingError(f"{p}: [units]: unknown key {key!r} (allowed: {', '.join(UNITS)})")
+        if name not in UNITS[key]:
+            raise RecordingError(f"{p}: [units] {key} must be one of {', '.join(UNITS[key])}, got {name!r}")
+    return dict(table)
+
+
 def load_recording(path, require_sidecar: bool = False) -> Recording:
-    """Read ``path`` (CSV) and its sidecar, if any; raise `RecordingError` on anything unusable."""
+    """Read ``path`` (CSV) and its sidecar, if any, into SI units; raise `RecordingError` on
+    anything unusable."""
     p = Path(path)
-    try:
-        t, pose = read_table(p, COLUMNS)
-    except TableError as e:
-        raise RecordingError(str(e)) from None
     side = sidecar_path(p)
     meta = read_sidecar(side) if side.is_file() else {}
     if require_sidecar and not meta:
         raise RecordingError(f"{p}: no sidecar {side.name} (it names the scene and the experiment)")
-    return Recording(path=p, t=t, pose=pose, **meta)
+    units = {**SI_UNITS, **meta.pop("units", {})}
+    try:
+        t, pose = read_table(p, columns(units))
+    except TableError as e:
+        hint = "" if units == SI_UNITS else f" (the sidecar's [units]: {', '.join(f'{k} {v}' for k, v in units.items())})"
+        raise RecordingError(f"{e}{hint}") from None
+    scale = np.array([UNITS["position"][units["position"]]] * 2 + [UNITS["angle"][units["angle"]]])
+    return Recording(path=p, t=t * UNITS["time"][units["time"]], pose=pose * scale, **meta)
 
 
 def write_recording(path, t, pose, sidecar: dict) -> None:

@@ -51,6 +51,9 @@ GOOD = "t_s,x_m,y_m,theta_rad\n0.0,1e-6,2e-6,0.1\n0.01,1.1e-6,2e-6,0.1\n0.02,1.2
         (GOOD, {**GOOD_SIDE, "experiment": "dance"}, "experiment must be one of"),
         (GOOD, {**GOOD_SIDE, "frame_rate": -3.0}, "frame_rate must be a positive"),
         (GOOD, {**GOOD_SIDE, "synthetic": True}, "must state its generating parameters"),
+        (GOOD, {**GOOD_SIDE, "units": {"position": "inch"}}, "position must be one of m, mm"),
+        (GOOD, {**GOOD_SIDE, "units": {"speed": "m/s"}}, "unknown key 'speed'"),
+        (GOOD, {**GOOD_SIDE, "units": {"position": "mm"}}, "header must be t_s,x_mm,y_mm,theta_rad"),
     ],
 )
 def test_bad_recordings_are_rejected_with_the_cause(tmp_path, text, side, cause):
@@ -69,6 +72,13 @@ def test_real_log_without_sidecar_loads_and_round_trips(tmp_path):
     write_recording(tmp_path / "copy.csv", rec.t, rec.pose, GOOD_SIDE)
     back = load_recording(tmp_path / "copy.csv")
     assert np.array_equal(back.t, rec.t) and np.array_equal(back.pose, rec.pose) and back.experiment == "push_release"
+
+
+def test_columns_in_the_sidecars_units_load_as_si(tmp_path):
+    text = "t_ms,x_mm,y_mm,theta_deg\n0,1.5,-2,90\n10,1.6,-2,45\n"
+    rec = load_recording(_write(tmp_path, text, {**GOOD_SIDE, "units": {"time": "ms", "position": "mm", "angle": "deg"}}))
+    assert np.allclose(rec.t, [0.0, 0.01])
+    assert np.allclose(rec.pose, [[1.5e-3, -2e-3, np.pi / 2], [1.6e-3, -2e-3, np.pi / 4]], rtol=1e-15)
 
 
 def test_catmull_rom_reproduces_quadratics_and_exposure_average_matches_integral():
