@@ -28,8 +28,10 @@ import numpy as np
 
 import pcrjax
 
-from .fit import Problem, adam, levenberg_marquardt, summarize
+from .least_squares import adam, levenberg_marquardt
+from .problem import Problem
 from .recording import load_recording
+from .result import summarize
 
 
 def _truth_theta(pb: Problem, scale_tau=1.0, scale_lengths=1.0):
@@ -46,8 +48,8 @@ def _truth_theta(pb: Problem, scale_tau=1.0, scale_lengths=1.0):
 
 def _lm(pb, theta, t_end, max_iter=30):
     return levenberg_marquardt(
-        lambda th: pb.residual(th, None, t_end),
-        lambda th: pb.residual_and_jacobian(th, None, t_end),
+        lambda th: pb.residual(th, t_end),
+        lambda th: pb.residual_and_jacobian(th, t_end),
         theta,
         max_iter,
         max_step=pb.max_step,
@@ -57,9 +59,7 @@ def _lm(pb, theta, t_end, max_iter=30):
 def _problem(path) -> Problem:
     """The fit of damping and lengths to a synthetic recording, with its true noise levels."""
     rec = load_recording(path)
-    pb = Problem(rec, ("tau", "lengths"))
-    pb.sigma = np.array([rec.truth["noise_position"]] * 2 + [rec.truth["noise_angle"]])
-    return pb
+    return Problem(rec, ("tau", "lengths")).with_noise([rec.truth["noise_position"]] * 2 + [rec.truth["noise_angle"]])
 
 
 def _optimum(path):
@@ -84,8 +84,8 @@ def correlation(path):
 
 def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), seed=0):
     """Cells: the first ``fractions`` of the recording x ``missing`` extra frames dropped."""
-    pb, (best, *_) = _optimum(path)
-    rec, tr = pb.rec, pb.rec.truth
+    whole, (best, *_) = _optimum(path)
+    rec, tr = whole.rec, whole.rec.truth
     lengths = [f * float(rec.t[-1]) for f in fractions]
     rng = np.random.default_rng(seed)
     u = rng.random(rec.t.size)
@@ -96,8 +96,7 @@ def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), s
     rows = []
     for T in lengths:
         for miss in missing:
-            pb.keep = u >= miss
-            pb.keep[0] = True
+            pb = whole.with_frames((u >= miss) | (np.arange(u.size) == 0))
             t_end = None if T >= rec.t[-1] - 1e-9 else T
             t1 = time.perf_counter()
             theta, J, r, it, conv, _ = _lm(pb, best, t_end)
@@ -136,7 +135,6 @@ def accuracy(path, fractions=(0.125, 0.25, 0.5, 1.0), missing=(0.0, 0.2, 0.5), s
                 f"{1e6 * row['dF']:12.4f} {1e6 * row['F_se']:7.4f} | {1e6 * dR:12.3f} {1e6 * row['R_se']:6.3f} | {str(ok):>11} {res.loss:5.2f} {it:3d} {row['s']:4.0f}",
                 flush=True,
             )
-    pb.keep = np.ones(rec.t.size, bool)
     return rows
 
 
@@ -149,12 +147,12 @@ def optimizers(path, window=0.2, adam_steps=200, learning_rates=(1e-2, 1e-1)):
         f"Levenberg-Marquardt: {it_lm} iterations ({'converged' if conv else 'not converged'}), loss {hist_lm[0]:.4g} -> {hist_lm[-1]:.6g}, {time.perf_counter() - t0:.0f} s",
         flush=True,
     )
-    sigma, (mask, active) = jnp.asarray(pb.sigma), pb.window(window)
+    noise, (mask, active) = pb._noise(), pb.window(window)
     runs = {"levenberg-marquardt": hist_lm}
     for lr in learning_rates:
         t0 = time.perf_counter()
         report = lambda k, loss, step: print(f"  Adam lr={lr:g} step {k}: loss {loss:.6g}", flush=True) if k % 25 == 0 else None  # noqa: E731
-        _, hist = adam(lambda th: pb._residual_fn(th, sigma, mask, active)[0], start, adam_steps, lr, progress=report)
+        _, hist = adam(lambda th: pb._residual_fn(th, noise, mask, active)[0], start, adam_steps, lr, progress=report)
         runs[f"adam lr={lr:g}"] = hist
         fate = (
             f"stopped at step {len(hist)}: the simulation failed there (NaN loss)"

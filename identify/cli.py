@@ -1,7 +1,7 @@
 """`pcrjax-identify RECORDING.csv --fit tau,lengths [--scene S] --out DIR`.
 
 Writes ``DIR/fit.json`` (values, standard errors, correlation, noise estimates, final loss,
-iterations, wall time), ``DIR/fit_time.png`` (measured vs simulated x, y, theta over time),
+iterations, wall time, outlier frames), ``DIR/fit_time.png`` (measured vs simulated x, y, theta over time),
 ``DIR/fit_plane.png`` (the path in the plane, like thesis Figure 5.7), ``DIR/residuals.png`` and
 ``DIR/loss.png``; progress is printed while it runs and saved in ``DIR`` so that an interrupted
 fit resumes where it stopped. Bad input prints one line naming the cause and exits with status 2.
@@ -37,11 +37,20 @@ def _parser():
     p.add_argument(
         "--refine",
         type=int,
-        default=0,
+        default=2,
         metavar="LEVELS",
-        help="grid refinements (2x nodes, dt/2 each) that measure the discretisation error (default 0: none; 2 measures it)",
+        help="grid refinements (2x nodes, dt/2 each) that measure the discretisation error, at most (default 2; 0: none)",
     )
     return p
+
+
+def _scale(values, unit: str):
+    """(factor, label) of the SI prefix in which ``values`` (in ``unit``) read as 1-1000."""
+    size = float(np.max(np.abs(values))) if np.size(values) else 0.0
+    for factor, prefix in ((1.0, ""), (1e-3, "m"), (1e-6, "µ")):
+        if size >= factor:
+            return factor, f"{prefix}{unit}"
+    return 1e-9, f"n{unit}"
 
 
 def _plots(out: Path, rec, seen, result):
@@ -51,11 +60,21 @@ def _plots(out: Path, rec, seen, result):
     import matplotlib.pyplot as plt
 
     t, meas = rec.t, rec.pose
-    names = [("x", 1e6, "µm"), ("y", 1e6, "µm"), ("θ", 1e6, "µrad")]
+    bad = np.isin(t, np.asarray(result.outliers))  # frames reported as outliers
+    rel, fit_rel, res = meas - meas[0], seen - meas[0], seen - meas
+    units = [_scale(rel[:, :2], "m")] * 2 + [_scale(rel[:, 2], "rad")]
+    res_units = [_scale(res[~bad][:, :2], "m")] * 2 + [_scale(res[~bad][:, 2], "rad")]
+    names = ("x", "y", "θ")
+
+    def marked(ax, x, y):
+        if np.any(bad):
+            ax.plot(x[bad], y[bad], "x", color="red", ms=5, label=f"outliers ({int(np.sum(bad))})")
+
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-    for k, (ax, (nm, sc, unit)) in enumerate(zip(axes, names)):
-        ax.plot(t, (meas[:, k] - meas[0, k]) * sc, ".", ms=3, label="measured")
-        ax.plot(t, (seen[:, k] - meas[0, k]) * sc, "-", lw=1, label="simulated (fit)")
+    for k, (ax, nm, (sc, unit)) in enumerate(zip(axes, names, units)):
+        ax.plot(t, rel[:, k] / sc, ".", ms=3, label="measured")
+        ax.plot(t, fit_rel[:, k] / sc, "-", lw=1, label="simulated (fit)")
+        marked(ax, t, rel[:, k] / sc)
         ax.set_ylabel(f"{nm} − {nm}₀ ({unit})")
     axes[0].legend()
     axes[-1].set_xlabel("t (s)")
@@ -63,19 +82,25 @@ def _plots(out: Path, rec, seen, result):
     fig.savefig(out / "fit_time.png", dpi=120)
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(6, 6))
-    ax.plot((meas[:, 0] - meas[0, 0]) * 1e6, (meas[:, 1] - meas[0, 1]) * 1e6, ".", ms=3, label="measured")
-    ax.plot((seen[:, 0] - meas[0, 0]) * 1e6, (seen[:, 1] - meas[0, 1]) * 1e6, "-", lw=1, label="simulated (fit)")
-    ax.set_xlabel("x − x₀ (µm)")
-    ax.set_ylabel("y − y₀ (µm)")
+    sc, unit = units[0]
+    ax.plot(rel[:, 0] / sc, rel[:, 1] / sc, ".", ms=3, label="measured")
+    ax.plot(fit_rel[:, 0] / sc, fit_rel[:, 1] / sc, "-", lw=1, label="simulated (fit)")
+    marked(ax, rel[:, 0] / sc, rel[:, 1] / sc)
+    ax.set_xlabel(f"x − x₀ ({unit})")
+    ax.set_ylabel(f"y − y₀ ({unit})")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "fit_plane.png", dpi=120)
     plt.close(fig)
     fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
-    for k, (ax, (nm, sc, unit)) in enumerate(zip(axes, names)):
-        ax.plot(t, (seen[:, k] - meas[:, k]) * sc * 1e3, ".", ms=3)
-        ax.set_ylabel(f"{nm} residual (n{unit[1:] if unit.startswith('µ') else unit})")
+    for k, (ax, nm, (sc, unit)) in enumerate(zip(axes, names, res_units)):
+        ax.plot(t[~bad], res[~bad, k] / sc, ".", ms=3)
+        if np.any(bad):  # off the scale of the others: drawn at its edge
+            lim = 5 * np.max(np.abs(res[~bad, k] / sc))
+            ax.plot(t[bad], np.clip(res[bad, k] / sc, -lim, lim), "x", color="red", ms=5, label="outliers (clipped)")
+            ax.legend()
+        ax.set_ylabel(f"{nm} residual ({unit})")
     axes[-1].set_xlabel("t (s)")
     fig.tight_layout()
     fig.savefig(out / "residuals.png", dpi=120)
@@ -90,6 +115,7 @@ def _plots(out: Path, rec, seen, result):
 
 
 def run(args) -> dict:
+    from . import robust
     from .fit import Problem, fit
     from .recording import load_recording
 
@@ -133,6 +159,12 @@ def run(args) -> dict:
         print(
             f"values from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s, Newton tolerance {m['tol']:.0e}; "
             "± statistical (noise), ± discretisation (the last grid refinement's move)"
+        )
+    if result.outliers:
+        shown = ", ".join(f"{t:.4g}" for t in result.outliers[:10]) + (" ..." if len(result.outliers) > 10 else "")
+        print(
+            f"outliers: {len(result.outliers)} frames off alone, more than {robust.OUTLIER:g} times as far from what their "
+            f"neighbours predict as frames around them (t = {shown} s): weighed down by the Huber loss, listed in fit.json"
         )
     if result.message:
         print(f"note: {result.message}")

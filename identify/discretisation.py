@@ -27,8 +27,9 @@ from __future__ import annotations
 import dataclasses
 import time
 
-import jax.numpy as jnp
 import numpy as np
+
+from .least_squares import FitError, standard_errors_theta
 
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
@@ -65,19 +66,16 @@ class Level:
         )
 
 
-def chord_refit(problem, theta, J, sigma, max_iter: int = CHORD_ITER, se_theta=None):
+def chord_refit(problem, theta, J, max_iter: int = CHORD_ITER, se_theta=None):
     """(theta, cost, iterations) minimising ``problem``'s residuals over the whole recording
     from ``theta`` with the Jacobian ``J`` held (of another discretisation of the same
     problem). Stops when no unknown moves by more than ``STILL`` of its standard error
     ``se_theta`` (1e-6 in theta if None). Raises `FitError` where the refined model's rollout
     fails."""
-    from .fit import FitError  # fit imports this module
-
     theta = np.asarray(theta, float)
-    sigma = jnp.asarray(sigma)
     floor = 1e-6 if se_theta is None else STILL * np.maximum(se_theta, 1e-12)
     for it in range(1, max_iter + 1):
-        r = np.asarray(problem.residual(theta, sigma))
+        r = np.asarray(problem.residual(theta))
         if not np.all(np.isfinite(r)):
             raise FitError(
                 f"the model with {problem.scene.solver.nodes} nodes, dt {float(problem.scene.solver.dt):.3g} s does not converge"
@@ -86,18 +84,16 @@ def chord_refit(problem, theta, J, sigma, max_iter: int = CHORD_ITER, se_theta=N
         theta = theta + step
         if np.all(np.abs(step) <= floor):
             break
-    r = np.asarray(problem.residual(theta, sigma))
+    r = np.asarray(problem.residual(theta))
     return theta, 0.5 * float(r @ r), it
 
 
-def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=None, chi2: float = 1.0):
+def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0):
     """(the `Level` list: the tolerance refit first, then the grids; the failures: a refit whose
     rollout failed ends the list) for the fit ``problem`` at its optimum ``theta`` (Jacobian
-    ``J``, standard errors ``se_theta`` of theta at its reduced chi-square ``chi2``, noise
-    ``sigma``); each move is in the standard errors of its own grid (rescaled by its reduced
+    ``J``, standard errors ``se_theta`` of theta at its reduced chi-square ``chi2``, its noise
+    levels); each move is in the standard errors of its own grid (rescaled by its reduced
     chi-square). ``progress(message)``."""
-    from .fit import FitError
-
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tol = solver.nodes, float(solver.dt), float(solver.newton.tol)
@@ -110,7 +106,7 @@ def refine(problem, theta, J, se_theta, sigma, max_levels: int = 2, progress=Non
             progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} (discretisation error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
         try:
-            th, cost, it = chord_refit(fine, base_theta, J, sigma, se_theta=se_theta)
+            th, cost, it = chord_refit(fine, base_theta, J, se_theta=se_theta)
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
             break
@@ -136,11 +132,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     of the finest model evaluated by `refine`, their discretisation and tolerance errors, the
     model they come from and the refits made; its message says when the last refinement still
     moved a value by more than a third of its standard error."""
-    from .fit import standard_errors_theta
-
-    levels, failed = refine(
-        problem, theta, J, standard_errors_theta(J, result.loss), problem.sigma, max_levels, progress, result.loss
-    )
+    levels, failed = refine(problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss)
     message = " ".join([result.message, *failed]).strip()
     if len(levels) < 2:  # no grid refinement came through: the fit's own values, no error measured
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)

@@ -115,13 +115,21 @@ def settled(t, pose, frame_rate, order: int):
 
 
 def match_frequencies(
-    features_of, x0, target, max_iter: int = 20, max_step: float = 0.01, h: float = 1e-4, tol: float = 1e-4, weights=None
+    features_of,
+    x0,
+    target,
+    max_iter: int = 20,
+    max_step: float = 0.01,
+    h: float = 1e-4,
+    tol: float = 1e-4,
+    weights=None,
+    bounds=None,
 ):
     """Gauss-Newton on log features: ``x`` (log lengths) such that ``features_of(x)`` (positive: sorted
     frequencies in Hz, static displacements) equals ``target`` (as many or more than ``x``: least
     squares, each log ratio weighted by ``weights``); finite-difference Jacobian, steps bounded to
-    ``max_step``. Returns (x, converged): converged when every feature matches to ``tol`` (as many
-    as ``x``) or the steps stop."""
+    ``max_step`` and ``x`` to the box ``bounds`` = (lower, upper) if given. Returns (x, converged):
+    converged when every feature matches to ``tol`` (as many as ``x``) or the steps stop."""
     w = np.ones(np.size(target)) if weights is None else np.asarray(weights, float)
     x, last = np.asarray(x0, float).copy(), None
     for _ in range(max_iter):
@@ -141,6 +149,8 @@ def match_frequencies(
             return x, False
         step = np.linalg.lstsq(J * w[:, None], -res * w, rcond=None)[0]
         last = step * min(1.0, max_step / max(np.max(np.abs(step)), 1e-300))
+        if bounds is not None:
+            last = np.clip(x + last, *bounds) - x
         x += last
     res = np.log(features_of(x) / target)
     return x, bool(np.max(np.abs(res)) < (tol if target.size == x.size else 0.03))

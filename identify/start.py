@@ -23,15 +23,23 @@ The stages (`initial_lengths`):
    a seeded Latin hypercube (`SCREEN`: many where the features are static solves, few where each
    is a simulation), on as many threads as there are cores. Candidates are ranked by their
    features' distance to the recording's.
-2. **Polish** the best ones by weighted Gauss-Newton on the features (`modes.match_frequencies`).
-   The distinct ones that match go on to the time-domain ranking (`fit.modal_start`).
+2. **Polish** the best ones by weighted Gauss-Newton on the features (`modes.match_frequencies`),
+   inside the prior. The distinct ones that match go on to the time-domain ranking
+   (`fit.modal_start`).
+
+Where the whole prior moves the features less than their match (`MATCH`), they cannot tell
+lengths apart, and the time-domain fit's first window cannot miss the basin either: a rod's
+modes move by about 1 % over ±2 mm of 0.4 m, less than the damping and the push move them. The
+start is then the nominal lengths.
 
 Nothing is abandoned while a candidate remains: when no polished candidate matches the features,
 the polished ones go on to the ranking, and the message says what the closest reached.
 
 **Damping** comes from the decays: Kelvin-Voigt damping decays every mode (and its harmonics)
-in proportion to tau, so tau is the simulated tau times the ratio of the strongest matched
-oscillation's recorded decay to the model's, kept within a decade of nominal either way.
+in proportion to tau, so tau is the simulated tau times the ratio of the strongest recorded
+oscillation's decay to the nearest model mode's (within `TAU_MATCH`: damping itself lowers a
+mode's frequency, by 5 % on the cantilever at tau 11 ms), repeated at the new tau until it
+settles, and kept within a decade of nominal either way.
 """
 
 from __future__ import annotations
@@ -57,6 +65,8 @@ TAU_RANGE = 10.0  # tau within a factor of this of nominal
 # static solves, fewer where each is a simulation
 SCREEN = {True: (512, 64), False: (24, 4)}  # static features: (screened, polished); simulated
 MATCH = 0.03  # features within 3 %: a match
+TAU_MATCH = 0.15  # a model mode this close to the strongest recorded one gives the damping
+TAU_ITER = 3  # damping estimates, each simulated at the previous one's tau
 SIMULATED = 0.4  # s of free motion simulated per candidate
 WINDOW = 0.1  # s: the matrix pencil's window (at least 12 frames)
 ORDER = 7  # the matrix pencil's order: three oscillations and a drift
@@ -208,19 +218,36 @@ class Features:
 
     def tau(self, x, tau_nominal: float):
         """(tau, the recorded oscillation it comes from: (Hz as filmed, decay 1/s), or None: the
-        nominal) at log lengths ``x``: theta's tau times the ratio of the decay of the strongest
-        recorded oscillation that a model mode matches to that mode's (Kelvin-Voigt damping
-        decays every mode in proportion to tau), kept within TAU_RANGE of nominal."""
-        sim = self.simulated(x)
-        if sim is None or sim[0].size == 0 or self.tau_sim is None:
+        nominal) at log lengths ``x``: the simulated tau times the ratio of the decay of the
+        strongest recorded oscillation that a model mode matches (to `TAU_MATCH`) to that mode's
+        (Kelvin-Voigt damping decays every mode in proportion to tau), simulated again at the
+        new tau until it moves less than 5 %, kept within TAU_RANGE of nominal."""
+        if self.tau_sim is None:
             return tau_nominal, None
-        shown = modes.fold(sim[0], self.problem.rec.frame_rate)
-        for f, d in zip(self.freq, self.decay):
-            k = int(np.argmin(np.abs(shown - f)))
-            if abs(shown[k] / f - 1.0) < MATCH and sim[1][k] > 0:
-                tau = self.tau_sim * d / sim[1][k]
-                return float(np.clip(tau, tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE)), (f, d)
-        return tau_nominal, None
+        i_tau = self.problem.slices["tau"]
+        theta, tau, used = self.theta, self.tau_sim, None
+        try:
+            for _ in range(TAU_ITER):
+                self.theta = theta.copy()
+                self.theta[i_tau] = np.log(tau)
+                sim = self.simulated(x)
+                if sim is None or sim[0].size == 0:
+                    break
+                shown = modes.fold(sim[0], self.problem.rec.frame_rate)
+                new = None
+                for f, d in zip(self.freq, self.decay):
+                    k = int(np.argmin(np.abs(shown - f)))
+                    if abs(shown[k] / f - 1.0) < TAU_MATCH and sim[1][k] > 0:
+                        new, used = float(np.clip(tau * d / sim[1][k], tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE)), (f, d)
+                        break
+                if new is None:
+                    break
+                tau, done = new, abs(new / tau - 1.0) < 0.05
+                if done:
+                    break
+        finally:
+            self.theta = theta
+        return (tau, used) if used is not None else (tau_nominal, None)
 
 
 def initial_lengths(problem, theta, progress=None, warm=None, prior_length: float = PRIOR_LENGTH, seed: int = 0):
@@ -254,8 +281,16 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             f"{problem.rec.path}: the model fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
         )
 
+    if not feats.static and _indistinct([found[i] for i in ok]):
+        say(
+            f"start: over the prior the model's features move less than {MATCH:.0%}: they cannot tell lengths apart; "
+            "starting from the nominal lengths"
+        )
+        return _with_tau(problem, feats, theta, x0, say), [x0]
+    box = (np.log(L0 - prior_length), np.log(L0 + prior_length))
+
     def polish(x):
-        return modes.match_frequencies(feats.of, x, feats.recorded, max_iter=8, tol=1e-3, weights=feats.weights)
+        return modes.match_frequencies(feats.of, x, feats.recorded, max_iter=8, tol=1e-3, weights=feats.weights, bounds=box)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         polished = list(pool.map(polish, cands[ok[:n_polish]]))
@@ -277,14 +312,27 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             f"the closest reach {np.round(closest, 4).tolist()}: going on from the polished ones"
         )
         matched = [x for x, _ in polished] or [cands[ok[0]]]
-    if "tau" in problem.slices:
-        tau, used = feats.tau(matched[0], float(np.mean(problem.fixed["tau"])))
-        theta[problem.slices["tau"]] = np.log(tau)
-        say(
-            f"start: tau {tau:.4g} s"
-            + (f" from the decay of {used[0]:.2f} Hz" if used is not None else " (no decay matched: the scene's)")
-        )
-    return theta, matched
+    return _with_tau(problem, feats, theta, matched[0], say), matched
+
+
+def _indistinct(features) -> bool:
+    """Whether every set of ``features`` lies within MATCH of the first (the nominal lengths')."""
+    ref = np.asarray(features[0])
+    return all(np.max(np.abs(np.log(np.asarray(f) / ref))) < MATCH for f in features[1:])
+
+
+def _with_tau(problem, feats, theta, x, say):
+    """``theta`` with tau from the recorded decays at log lengths ``x`` (`Features.tau`)."""
+    if "tau" not in problem.slices:
+        return theta
+    theta = theta.copy()
+    tau, used = feats.tau(x, float(np.mean(problem.fixed["tau"])))
+    theta[problem.slices["tau"]] = np.log(tau)
+    say(
+        f"start: tau {tau:.4g} s"
+        + (f" from the decay of {used[0]:.2f} Hz" if used is not None else " (no decay matched: the scene's)")
+    )
+    return theta
 
 
 def initial_tau(problem, theta, progress=None):
@@ -293,12 +341,8 @@ def initial_tau(problem, theta, progress=None):
     theta = np.array(theta, float)
     if "tau" not in problem.slices:
         return theta
-    feats = Features(problem, theta)
-    tau, _ = feats.tau(None, float(np.mean(problem.fixed["tau"])))
-    theta[problem.slices["tau"]] = np.log(tau)
-    if progress is not None:
-        progress(f"start: tau {tau:.4g} s", 0, None, None)
-    return theta
+    say = (lambda msg: progress(msg, 0, None, None)) if progress is not None else (lambda msg: None)  # noqa: E731
+    return _with_tau(problem, Features(problem, theta), theta, None, say)
 
 
 def platform_modes(scene):

@@ -19,8 +19,10 @@ import pytest
 
 import pcrjax
 from identify import experiment, modes, start
-from identify.fit import FitError, Problem, fit, levenberg_marquardt, summarize
+from identify.fit import FitError, Problem, fit
+from identify.least_squares import levenberg_marquardt
 from identify.recording import load_recording
+from identify.result import summarize
 from identify.start import latin_hypercube
 
 DATA = "experiments_data"
@@ -216,8 +218,7 @@ def test_short_noisy_recording_reports_large_uncertainty():
     tr = rec.truth
     sigma = 1000 * np.array([tr["noise_position"]] * 2 + [tr["noise_angle"]])
     noisy = dataclasses.replace(rec, pose=rec.pose + np.random.default_rng(5).standard_normal(rec.pose.shape) * sigma)
-    pb = Problem(noisy, ("tau", "lengths"))
-    pb.sigma = sigma
+    pb = Problem(noisy, ("tau", "lengths")).with_noise(sigma)
     vals = dict(pb.initial_values, **{k: np.asarray(tr[k], float) for k in ("tau", "lengths", "push_force", "time_offset")})
     th, J, r, *_ = levenberg_marquardt(
         pb.residual, pb.residual_and_jacobian, np.asarray(pb.to_theta(vals)), 30, max_step=pb.max_step
@@ -277,7 +278,8 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 5x in
     time than the fit's (N 6, dt 2 ms), fitted from tau a factor 3 off and the length 1.6 mm off
     (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, one grid
-    refinement, fit.json and the plots): every truth within 3 combined uncertainties."""
+    refinement, fit.json and the plots), with 2 % of its frames thrown off by decoding errors:
+    every truth within 3 combined uncertainties, and the wild frames reported."""
     import importlib.util
 
     from identify import cli
@@ -290,11 +292,20 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
     spec["rod"] = dict(tau=3 * spec["truth"]["tau"])
     path = gen.generate("small_release", spec, tmp_path)
+    # a decoding error now and then: 2 % of the frames thrown 5 mm off (the noise is 2 um)
+    rec = load_recording(path)
+    wild = np.random.default_rng(3).choice(rec.frames, size=rec.frames // 50, replace=False)
+    pose = rec.pose.copy()
+    pose[wild, :2] += 5e-3 * np.array([1.0, -1.0])
+    rows = ["t_s,x_m,y_m,theta_rad"] + [f"{t!r},{x!r},{y!r},{a!r}" for t, (x, y, a) in zip(rec.t.tolist(), pose.tolist())]
+    path.write_text("\n".join(rows) + "\n")
     out = tmp_path / "fit"
     assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "1"]) == 0
     printed = capsys.readouterr().out
+    print(printed)
     assert "± statistical (noise), ± discretisation" in printed
     res = json.loads((out / "fit.json").read_text())
+    assert np.allclose(sorted(res["outliers"]), np.sort(rec.t[wild])), (res["outliers"], np.sort(rec.t[wild]))
     truth = spec["truth"]
     for name in ("tau", "lengths", "time_offset"):
         err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])

@@ -1,0 +1,76 @@
+"""The result of a fit: values, standard errors, correlations and noise levels at the optimum."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from .least_squares import _covariance
+from .problem import Problem
+
+
+@dataclasses.dataclass
+class Result:
+    labels: list
+    values: dict  # name -> value (list or float)
+    standard_errors: dict
+    correlation: list  # (p, p) of the fitted unknowns, in `labels` order (log space for log unknowns)
+    sigma: list  # noise estimates: position (m), angle (rad)
+    loss: float  # final reduced chi-square
+    rms: list  # RMS residual per column, in m, m, rad
+    iterations: int = 0
+    wall_s: float = 0.0
+    converged: bool = True
+    history: list = dataclasses.field(default_factory=list)  # loss per iteration (all stages)
+    stages: list = dataclasses.field(default_factory=list)  # per stage: window, iterations, final loss
+    message: str = ""
+    outliers: list = dataclasses.field(default_factory=list)  # times (s) of frames beyond robust.OUTLIER noise levels
+    # the model error of the values (`discretisation`): how far each moved on the last grid
+    # refinement and with a tenth of the Newton tolerance; the model the values come from
+    discretisation_errors: dict = dataclasses.field(default_factory=dict)
+    tolerance_errors: dict = dataclasses.field(default_factory=dict)
+    model: dict = dataclasses.field(default_factory=dict)  # nodes, dt, tol
+    refinements: list = dataclasses.field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def uncertainty(self, name):
+        """The statistical and discretisation errors of ``name`` combined (root sum of squares)."""
+        return np.hypot(self.standard_errors[name], self.discretisation_errors.get(name, 0.0))
+
+
+def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
+    """The `Result` at an optimum ``theta`` (with its Jacobian ``J`` and residuals ``r`` over the
+    window up to ``t_end``): values, standard errors from the Gauss-Newton covariance rescaled by
+    the reduced chi-square, correlations, and the pattern frame derived with its errors."""
+    keep = np.asarray(problem.window(t_end)[0]) > 0
+    m, p = problem.counted(t_end), theta.size
+    chi2 = float(r @ r) / max(m - p, 1)
+    cov = _covariance(J) * chi2
+    se_theta = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    corr = cov / np.outer(se_theta, se_theta)
+    vals = problem.to_values(jnp.asarray(theta))
+    values, errors = {}, {}
+    for u in problem.unknowns:
+        v = np.atleast_1d(np.asarray(vals[u.name], float))
+        s = se_theta[problem.slices[u.name]] * (v if u.log else u.unit)  # d exp(x) = exp(x) dx
+        values[u.name] = v.tolist() if u.size > 1 else float(v[0])
+        errors[u.name] = s.tolist() if u.size > 1 else float(s[0])
+    frame, G = problem.frame(theta)  # the pattern frame, derived: errors by the delta method
+    frame_se = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
+    values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
+    errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
+    res = (r.reshape(-1, 3) * problem.sigma)[keep]
+    return Result(
+        labels=problem.labels(),
+        values=values,
+        standard_errors=errors,
+        correlation=corr.tolist(),
+        sigma=[float(problem.sigma[0]), float(problem.sigma[2])],
+        loss=chi2,
+        rms=np.sqrt(np.mean(res**2, axis=0)).tolist(),
+        **info,
+    )
