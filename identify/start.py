@@ -36,9 +36,9 @@ Nothing is abandoned while a candidate remains: when no polished candidate match
 the polished ones go on to the ranking, and the message says what the closest reached.
 
 **Damping** comes from the decays: Kelvin-Voigt damping decays every mode (and its harmonics)
-in proportion to tau, so tau is the simulated tau times the ratio of the strongest recorded
-oscillation's decay to the nearest model mode's (within `TAU_MATCH`: damping itself lowers a
-mode's frequency, by 5 % on the cantilever at tau 11 ms), repeated at the new tau until it
+in proportion to tau, so tau is the simulated tau times the ratio of the strongest matched
+recorded oscillation's decay to the model mode's (failing a match, the strongest one's within
+`TAU_MATCH`: damping itself lowers a mode's frequency, by 5 % on the cantilever at tau 11 ms), repeated at the new tau until it
 settles, and kept within a decade of nominal either way.
 """
 
@@ -204,22 +204,42 @@ class Features:
         if not np.all(np.isfinite(f)):
             return np.full(self.recorded.size, np.nan)
         rate = self.problem.rec.frame_rate
-        shown = modes.fold(f, rate)
-        with_harmonics = np.concatenate([shown, modes.fold(2.0 * f, rate)])  # a nonlinear motion's second harmonics
+        physical = np.concatenate([f, 2.0 * f])  # with a nonlinear motion's second harmonics
+        shown = modes.fold(physical, rate)
         r = self.freq[: self.n_freq, None]
-        k = np.argmin(np.abs(with_harmonics[None, :] - r), axis=1)
-        k_shape = np.argmin(np.abs(shown[None, :] - r[: self.n_shape]), axis=1)
-        return np.concatenate([with_harmonics[k], shape[k_shape]])
+        k = np.argmin(np.abs(shown[None, :] - r) / physical[None, :], axis=1)
+        k_shape = np.argmin(np.abs(shown[None, : f.size] - r[: self.n_shape]) / f[None, :], axis=1)
+        # a frequency as filmed is compared in proportion to the physical one it shows: 1 % of a
+        # 94 Hz mode is 4 % of the 20 Hz it aliases to at 114 frames/s
+        matched = r[:, 0] * np.exp((shown[k] - r[:, 0]) / physical[k])
+        return np.concatenate([matched, shape[k_shape]])
 
-    def distance(self, features) -> float:
-        """Weighted relative distance of model ``features`` to the recorded ones (inf: failed)."""
+    def distance(self, features, shapes: bool = True) -> float:
+        """Weighted relative distance of model ``features`` to the recorded ones (inf: failed);
+        without the mode shapes if not ``shapes``."""
         rel = np.abs(np.log(np.maximum(features, 1e-300) / self.recorded))
-        return float(np.sum(self.weights * np.minimum(rel, 1.0))) if np.all(np.isfinite(rel)) else np.inf
+        w = self.weights if shapes or self.actuated else np.where(np.arange(rel.size) < self.n_freq, self.weights, 0.0)
+        return float(np.sum(w * np.minimum(rel, 1.0)) / np.sum(w)) if np.all(np.isfinite(rel)) else np.inf
+
+    def _decay_ratio(self, sim):
+        """(recorded / model decay, the recorded (Hz as filmed, decay 1/s)) of the strongest
+        recorded oscillation that a model mode of ``sim`` (`simulated`) shows within MATCH of its
+        physical frequency, else of the strongest one within TAU_MATCH; None if none."""
+        shown = modes.fold(sim[0], self.problem.rec.frame_rate)
+        for within in (MATCH, TAU_MATCH):
+            for f, d in zip(self.freq, self.decay):
+                miss = np.abs(shown - f) / sim[0]
+                k = int(np.argmin(miss))
+                if miss[k] < within and sim[1][k] > 0:
+                    return d / sim[1][k], (f, d)
+                if within == TAU_MATCH:
+                    break
+        return None
 
     def tau(self, x, tau_nominal: float):
         """(tau, the recorded oscillation it comes from: (Hz as filmed, decay 1/s), or None: the
         nominal) at log lengths ``x``: the simulated tau times the ratio of the decay of the
-        strongest recorded oscillation that a model mode matches (to `TAU_MATCH`) to that mode's
+        strongest recorded oscillation that a model mode matches (`_decay_ratio`) to that mode's
         (Kelvin-Voigt damping decays every mode in proportion to tau), simulated again at the
         new tau until it moves less than 5 %, kept within TAU_RANGE of nominal."""
         if self.tau_sim is None:
@@ -233,17 +253,13 @@ class Features:
                 sim = self.simulated(x)
                 if sim is None or sim[0].size == 0:
                     break
-                shown = modes.fold(sim[0], self.problem.rec.frame_rate)
-                new = None
-                for f, d in zip(self.freq, self.decay):
-                    k = int(np.argmin(np.abs(shown - f)))
-                    if abs(shown[k] / f - 1.0) < TAU_MATCH and sim[1][k] > 0:
-                        new, used = float(np.clip(tau * d / sim[1][k], tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE)), (f, d)
-                        break
-                if new is None:
+                found = self._decay_ratio(sim)
+                if found is None:
                     break
-                tau, done = new, abs(new / tau - 1.0) < 0.05
-                if done:
+                ratio, used = found
+                new = float(np.clip(tau * ratio, tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE))
+                settled, tau = abs(new / tau - 1.0) < 0.05, new
+                if settled:
                     break
         finally:
             self.theta = theta
@@ -295,7 +311,9 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     with ThreadPoolExecutor(max_workers=workers) as pool:
         polished = list(pool.map(polish, cands[ok[:n_polish]]))
     reached = [feats.of(x) for x, _ in polished]
-    dists = [feats.distance(f) for f in reached]
+    # a match is judged on the frequencies alone: a shape read off an aliased, noisy recording
+    # can be a factor 10 off where the frequencies agree to 1 % (the finer-grid suite)
+    dists = [feats.distance(f, shapes=False) for f in reached]
     matched = []
     for (x, _), d in zip(polished, dists):
         if (
@@ -304,7 +322,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             and not any(np.max(np.abs(x - y)) < 1e-3 for y in matched)
         ):
             matched.append(x)
-    say(f"start: {len(polished)} closest polished: {len(matched)} distinct sets of lengths match the features to {MATCH:.0%}")
+    say(f"start: {len(polished)} closest polished: {len(matched)} distinct sets of lengths match the frequencies to {MATCH:.0%}")
     if not matched:
         closest = reached[int(np.argmin(dists))] if dists else found[ok[0]]
         say(
