@@ -23,7 +23,11 @@ from pcrjax import SceneError
 def _parser():
     p = argparse.ArgumentParser(prog="pcrjax-identify", description="Fit damping and rod lengths to a recorded motion.")
     p.add_argument("recording", help="CSV t_s,x_m,y_m,theta_rad (with its TOML sidecar, or --scene)")
-    p.add_argument("--fit", default="tau,lengths", help="parameters: tau (shared), tau_per_rod, lengths (comma separated)")
+    p.add_argument(
+        "--fit",
+        default="tau,lengths",
+        help="parameters: tau (shared), tau_per_rod, tau_split (stretch-shear and bend-twist apart), lengths (comma separated)",
+    )
     p.add_argument("--scene", help="scene name or TOML path (default: the sidecar's)")
     p.add_argument("--out", default="out/identify", help="output folder")
     p.add_argument("--max-iter", type=int, default=30, help="Levenberg-Marquardt iterations per pass")
@@ -178,6 +182,8 @@ def run(args) -> dict:
 
 UNITS = dict(
     tau="s",
+    tau_se="s",
+    tau_bt="s",
     lengths="m",
     push_force="N",
     push_moment="N m",

@@ -3,6 +3,8 @@
 **Parameters** (a flat dict of float64 arrays, the fit's vocabulary):
 
 * ``tau`` (s): Kelvin-Voigt damping, shape () shared by all rods or (n,) per rod;
+* ``tau_se``, ``tau_bt`` (s): the damping of stretch and shear and that of bending and twist
+  apart (``bse = tau_se Kse``, ``bbt = tau_bt Kbt``), shared by the rods;
 * ``lengths`` (m): rod lengths, (n,) (a rod scene: ());
 * ``push_force`` (N, planar x, y) and ``push_moment`` (N m, about z): the load held until the
   release of a push-and-release (a rod scene: ``push_force`` is the tip force in the bending
@@ -25,7 +27,7 @@ import jax.numpy as jnp
 import pcrjax
 from pcrjax import SceneError, scene_from_dict
 from pcrjax.io.scene_file import read_toml, scene_path
-from pcrjax.physics.rod import TauDamping
+from pcrjax.physics.rod import SplitTauDamping, TauDamping
 from pcrjax.physics.rotations import exp_map
 
 from .recording import Recording, RecordingError
@@ -85,6 +87,10 @@ def apply(scene, params: dict):
     if "tau" in params:
         tau = jnp.broadcast_to(params["tau"], jnp.shape(rod.damping.tau))
         scene = eqx.tree_at(lambda s: s.legs.rod.damping.tau, scene, tau)
+    if "tau_se" in params:
+        shape = jnp.shape(rod.damping.tau)
+        split = SplitTauDamping(jnp.broadcast_to(params["tau_se"], shape), jnp.broadcast_to(params["tau_bt"], shape))
+        scene = eqx.tree_at(lambda s: s.legs.rod.damping, scene, split)
     if "lengths" in params:
         scene = eqx.tree_at(lambda s: s.legs.rod.length, scene, jnp.broadcast_to(params["lengths"], jnp.shape(rod.length)))
     if "push_force" in params:

@@ -1,7 +1,8 @@
 """The fit of one recording as a least-squares problem: its unknowns and weighted residuals.
 
 **Unknowns.** The physical parameters chosen with ``fit`` (``tau``: one damping time shared by
-the rods; ``tau_per_rod``; ``lengths``: one per rod) and the experiment's nuisance parameters,
+the rods; ``tau_per_rod``; ``tau_split``: ``tau_se`` and ``tau_bt``, stretch-shear and
+bend-twist apart; ``lengths``: one per rod) and the experiment's nuisance parameters,
 always fitted: where the camera sees the robot at t = 0 (``start_position``, ``start_angle``;
 the pattern frame's offset and rotation follow, `frame_transform`) and its clock offset, plus,
 for a push-and-release, the push that was released (its force and moment). Positive parameters
@@ -32,7 +33,8 @@ from . import camera, experiment, robust
 from .least_squares import levenberg_marquardt
 from .recording import Recording, RecordingError
 
-PHYSICAL = ("tau", "tau_per_rod", "lengths")
+PHYSICAL = ("tau", "tau_per_rod", "tau_split", "lengths")
+DAMPING = ("tau", "tau_se", "tau_bt")  # the unknowns that are damping times
 NOMINAL_SIGMA = np.array([1e-9, 1e-9, 1e-6])  # noise scales (m, m, rad) of the first pass
 # The camera's unknowns: where it sees the robot's pose at t = 0 (the static equilibrium the
 # motion starts from) and its clock offset. The pattern frame (offset, rotation) follows from the
@@ -85,8 +87,8 @@ class Problem:
         unknown_fit = [f for f in fit if f not in PHYSICAL]
         if unknown_fit:
             raise RecordingError(f"--fit: unknown parameter {unknown_fit[0]!r} (choose from {', '.join(PHYSICAL)})")
-        if "tau" in fit and "tau_per_rod" in fit:
-            raise RecordingError("--fit: tau (shared) and tau_per_rod exclude each other")
+        if sum(f in fit for f in ("tau", "tau_per_rod", "tau_split")) > 1:
+            raise RecordingError("--fit: tau (shared), tau_per_rod and tau_split exclude each other")
         self.rec = rec
         sc = scene if scene is not None else experiment.build_scene(rec)
         self.scene = experiment.with_duration(sc, experiment.required_duration(rec))
@@ -98,6 +100,8 @@ class Problem:
             unknowns.append(Unknown("tau", 1, True, 1.0))
         if "tau_per_rod" in fit:
             unknowns.append(Unknown("tau", n_rods, True, 1.0))
+        if "tau_split" in fit:
+            unknowns += [Unknown("tau_se", 1, True, 1.0), Unknown("tau_bt", 1, True, 1.0)]
         if "lengths" in fit:
             unknowns.append(Unknown("lengths", n_rods, True, 1.0))
         if rec.experiment in ("push_release", "release"):
@@ -134,9 +138,18 @@ class Problem:
             vals["tau"] = jnp.broadcast_to(nom["tau"], nom["lengths"].shape) * jnp.ones_like(nom["lengths"])
         elif "tau" in self.fit:
             vals["tau"] = jnp.mean(nom["tau"])
+        elif "tau_split" in self.fit:
+            vals["tau_se"] = vals["tau_bt"] = jnp.mean(nom["tau"])
         for k, v in given.items():
             vals[k] = jnp.asarray(v, jnp.float64)
+        if "tau_split" in self.fit and "tau" in given:  # --tau0 starts both
+            vals["tau_se"] = vals["tau_bt"] = jnp.mean(vals["tau"])
         return vals
+
+    @property
+    def damping(self) -> list:
+        """The slices of theta that are damping times (logs)."""
+        return [self.slices[n] for n in DAMPING if n in self.slices]
 
     def to_theta(self, vals) -> jnp.ndarray:
         parts = []

@@ -157,7 +157,8 @@ class Features:
         self._lumped = platform_modes(problem.scene) if lumped else None
         self.static = self.actuated or lumped  # features from static solves (no simulation)
         # the model's simulated modes at theta's damping (the discretised damping moves frequencies too)
-        self.tau_sim = float(np.mean(np.exp(self.theta[problem.slices["tau"]]))) if "tau" in problem.slices else None
+        damping = [np.exp(self.theta[sl]) for sl in problem.damping]
+        self.tau_sim = float(np.mean(np.concatenate(damping))) if damping else None
 
     def describe(self) -> str:
         if self.actuated:
@@ -244,12 +245,10 @@ class Features:
         new tau until it moves less than 5 %, kept within TAU_RANGE of nominal."""
         if self.tau_sim is None:
             return tau_nominal, None
-        i_tau = self.problem.slices["tau"]
         theta, tau, used = self.theta, self.tau_sim, None
         try:
             for _ in range(TAU_ITER):
-                self.theta = theta.copy()
-                self.theta[i_tau] = np.log(tau)
+                self.theta = _set_damping(self.problem, theta, tau)
                 sim = self.simulated(x)
                 if sim is None or sim[0].size == 0:
                     break
@@ -333,6 +332,14 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     return _with_tau(problem, feats, theta, matched[0], say), matched
 
 
+def _set_damping(problem, theta, tau: float):
+    """``theta`` (a copy) with every damping time ``tau``."""
+    theta = np.array(theta, float)
+    for sl in problem.damping:
+        theta[sl] = np.log(tau)
+    return theta
+
+
 def _indistinct(features) -> bool:
     """Whether every set of ``features`` lies within MATCH of the first (the nominal lengths')."""
     ref = np.asarray(features[0])
@@ -341,11 +348,10 @@ def _indistinct(features) -> bool:
 
 def _with_tau(problem, feats, theta, x, say):
     """``theta`` with tau from the recorded decays at log lengths ``x`` (`Features.tau`)."""
-    if "tau" not in problem.slices:
+    if not problem.damping:
         return theta
-    theta = theta.copy()
     tau, used = feats.tau(x, float(np.mean(problem.fixed["tau"])))
-    theta[problem.slices["tau"]] = np.log(tau)
+    theta = _set_damping(problem, theta, tau)
     say(
         f"start: tau {tau:.4g} s"
         + (f" from the decay of {used[0]:.2f} Hz" if used is not None else " (no decay matched: the scene's)")
@@ -357,7 +363,7 @@ def initial_tau(problem, theta, progress=None):
     """``theta`` with its damping started from the recording's decays at its lengths (a fit of
     the damping alone)."""
     theta = np.array(theta, float)
-    if "tau" not in problem.slices:
+    if not problem.damping:
         return theta
     say = (lambda msg: progress(msg, 0, None, None)) if progress is not None else (lambda msg: None)  # noqa: E731
     return _with_tau(problem, Features(problem, theta), theta, None, say)

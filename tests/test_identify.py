@@ -349,3 +349,27 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     assert res["model"]["nodes"] >= 12 and len(res["refinements"]) == 2  # tolerance, then one grid
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
+
+
+def test_split_damping_with_equal_times_is_the_shared_damping():
+    """``--fit tau_split`` (stretch-shear and bend-twist damping apart): with both times equal the
+    residuals are the shared tau's, and the two derivatives add up to the shared one's (the chain
+    rule: Kelvin-Voigt damping is the sum of the two groups')."""
+    rec = load_recording(f"{DATA}/cantilever_release.csv").window(0.03)
+    shared = Problem(rec, ("tau", "lengths"))
+    split = Problem(rec, ("tau_split", "lengths"))
+    assert split.labels()[:2] == ["tau_se", "tau_bt"]
+    th = np.asarray(shared.to_theta(shared.initial_values))
+    th_split = np.concatenate([th[:1], th])
+    r = np.asarray(shared.residual(th))
+    assert np.allclose(np.asarray(split.residual(th_split)), r, rtol=1e-12, atol=1e-9 * np.max(np.abs(r)))
+    h = 1e-4
+
+    def dr(pb, theta, i):
+        e = np.zeros(theta.size)
+        e[i] = h
+        return (np.asarray(pb.residual(theta + e)) - np.asarray(pb.residual(theta - e))) / (2 * h)
+
+    both = dr(split, th_split, 0) + dr(split, th_split, 1)
+    assert np.max(np.abs(both - dr(shared, th, 0))) < 1e-6 * np.max(np.abs(dr(shared, th, 0)))
+    assert np.max(np.abs(dr(split, th_split, 1))) > 10 * np.max(np.abs(dr(split, th_split, 0)))  # bending dominates

@@ -47,6 +47,17 @@ class TauDamping(eqx.Module):
         return self.tau * kse, self.tau * kbt
 
 
+class SplitTauDamping(eqx.Module):
+    """Kelvin-Voigt damping with one time for stretch and shear, another for bending and twist:
+    ``bse = tau_se * Kse``, ``bbt = tau_bt * Kbt`` (s each)."""
+
+    tau_se: Float[Array, ""]
+    tau_bt: Float[Array, ""]
+
+    def diagonals(self, kse, kbt):
+        return self.tau_se * kse, self.tau_bt * kbt
+
+
 class DiagonalDamping(eqx.Module):
     """Kelvin-Voigt damping with explicit diagonals: ``bse`` (N s), ``bbt`` (N m^2 s)."""
 
@@ -61,7 +72,7 @@ class Rod(eqx.Module):
     """One rod's material and geometry (SI units). Every field is a differentiable leaf.
 
     **Fields:** ``length`` L (m), ``radius`` r (m), ``youngs_modulus`` E (Pa), ``shear_modulus``
-    G (Pa), ``density`` rho (kg/m^3), ``damping`` (`TauDamping` | `DiagonalDamping` | None),
+    G (Pa), ``density`` rho (kg/m^3), ``damping`` (`TauDamping` | `SplitTauDamping` | `DiagonalDamping` | None),
     ``drag`` diagonal of C (kg/m^2, or None), ``precurvature`` u* (1/m, or None).
     """
 
@@ -70,7 +81,7 @@ class Rod(eqx.Module):
     youngs_modulus: Float[Array, ""]
     shear_modulus: Float[Array, ""]
     density: Float[Array, ""]
-    damping: TauDamping | DiagonalDamping | None = None
+    damping: TauDamping | SplitTauDamping | DiagonalDamping | None = None
     drag: Float[Array, 3] | None = None
     precurvature: Float[Array, 3] | None = None
 
