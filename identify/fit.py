@@ -10,9 +10,10 @@ Triskele-bot 2 % of rod length moves the modes from 86-155 Hz to 19-84 Hz.
 **Noise.** Noise levels are unknown for a real log, so they are estimated from the residuals at
 the optimum (over the frames that a decoding error did not throw off, `robust.spikes`) and the
 fit is repeated once with them (feasible generalised least squares) under a Huber loss
-(`robust`) that weighs such frames down; they are reported. The covariance of the unknowns is then ``(J^T J)^{-1}`` of the Gauss-Newton
-Hessian at the optimum (rescaled by the final reduced chi-square), propagated through the log
-transforms to standard errors of the values themselves (`result.summarize`).
+(`robust`) that weighs such frames down; they are reported. The covariance of the unknowns is
+then ``(J^T J)^{-1}`` of the Gauss-Newton Hessian at the optimum (rescaled by the final reduced
+chi-square), propagated through the log transforms to standard errors of the values themselves
+(`result.summarize`).
 """
 
 from __future__ import annotations

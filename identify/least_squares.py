@@ -15,7 +15,7 @@ class FitError(RuntimeError):
     """The fit cannot go on (a simulation that does not converge at the values it must start from)."""
 
 
-def _covariance(J):
+def covariance(J):
     JtJ = J.T @ J
     d = 1.0 / np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
@@ -116,4 +116,4 @@ def adam(fun: Callable, theta0, steps=300, learning_rate=3e-2, progress=None):
 
 def standard_errors_theta(J, chi2: float):
     """Standard errors of theta from the Gauss-Newton covariance rescaled by ``chi2``."""
-    return np.sqrt(np.maximum(np.diag(_covariance(J) * chi2), 0.0))
+    return np.sqrt(np.maximum(np.diag(covariance(J) * chi2), 0.0))

@@ -7,7 +7,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from .least_squares import _covariance
+from .least_squares import covariance
 from .problem import Problem
 
 
@@ -49,7 +49,7 @@ def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
     keep = np.asarray(problem.window(t_end)[0]) > 0
     m, p = problem.counted(t_end), theta.size
     chi2 = float(r @ r) / max(m - p, 1)
-    cov = _covariance(J) * chi2
+    cov = covariance(J) * chi2
     se_theta = np.sqrt(np.maximum(np.diag(cov), 0.0))
     corr = cov / np.outer(se_theta, se_theta)
     vals = problem.to_values(jnp.asarray(theta))
