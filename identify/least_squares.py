@@ -16,6 +16,8 @@ class FitError(RuntimeError):
 
 
 def covariance(J):
+    """(J^T J)^{-1}, the Gauss-Newton covariance of unit-variance residuals, inverted with the
+    columns scaled to unit norm (unknowns of very different sizes)."""
     JtJ = J.T @ J
     d = 1.0 / np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
     return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
