@@ -321,7 +321,9 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             and not any(np.max(np.abs(x - y)) < 1e-3 for y in matched)
         ):
             matched.append(x)
-    say(f"start: {len(polished)} closest polished: {len(matched)} distinct sets of lengths match the {'static response' if feats.actuated else 'frequencies'} to {MATCH:.0%}")
+    say(
+        f"start: {len(polished)} closest polished: {len(matched)} distinct sets of lengths match the {'static response' if feats.actuated else 'frequencies'} to {MATCH:.0%}"
+    )
     if not matched:
         closest = reached[int(np.argmin(dists))] if dists else found[ok[0]]
         say(
