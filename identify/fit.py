@@ -112,6 +112,25 @@ def modal_start(
 FINAL_FTOL = 2e-3
 
 
+# A released push fitted this far (relative) from the sidecar's is no measurement error: the fit
+# is in a wrong minimum whose oscillations happen to fit.
+PUSH_DOUBT = 0.5
+
+
+def _implausible_push(problem: Problem, theta) -> str:
+    """A warning where the fitted push is far from the one the sidecar records ('' if not)."""
+    vals = problem.to_values(jnp.asarray(theta))
+    for name in ("push_force", "push_moment"):
+        if name in problem.slices:
+            fitted, told = np.atleast_1d(np.asarray(vals[name], float)), np.atleast_1d(np.asarray(problem.fixed[name], float))
+            if np.linalg.norm(fitted - told) > PUSH_DOUBT * np.linalg.norm(told):
+                return (
+                    f"the fitted {name} {np.round(fitted, 6).tolist()} is far from the recorded {np.round(told, 6).tolist()}: "
+                    "the fit is likely in a wrong minimum (check the recorded push, or start from other values)"
+                )
+    return ""
+
+
 def noise_levels(residuals) -> np.ndarray:
     """Noise levels (m, m, rad) of the three columns from ``residuals`` (M, 3) in their units:
     one level (`robust.noise_level`) for the two positions, one for the angle."""
@@ -270,6 +289,7 @@ def fit(
         history=history,
         stages=summary,
         outliers=np.asarray(outliers).tolist(),
+        message=_implausible_push(problem, theta),
     )
     if refine_levels > 0:
         result = discretisation.report(

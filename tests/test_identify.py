@@ -373,3 +373,15 @@ def test_split_damping_with_equal_times_is_the_shared_damping():
     both = dr(split, th_split, 0) + dr(split, th_split, 1)
     assert np.max(np.abs(both - dr(shared, th, 0))) < 1e-6 * np.max(np.abs(dr(shared, th, 0)))
     assert np.max(np.abs(dr(split, th_split, 1))) > 10 * np.max(np.abs(dr(split, th_split, 0)))  # bending dominates
+
+
+def test_a_push_far_from_the_recorded_one_is_reported_as_a_likely_wrong_minimum():
+    from identify.fit import _implausible_push
+
+    pb = Problem(load_recording(f"{DATA}/triskele_push_release.csv"), ("tau", "lengths"))
+    theta = np.asarray(pb.to_theta(pb.initial_values))
+    assert _implausible_push(pb, theta) == ""
+    theta[pb.slices["push_force"]] *= 1.3  # a push mis-recorded by 30 %: plausible
+    assert _implausible_push(pb, theta) == ""
+    theta[pb.slices["push_force"]] *= 4.0
+    assert "wrong minimum" in _implausible_push(pb, theta)
