@@ -379,7 +379,7 @@ def test_a_push_far_from_the_recorded_one_is_reported_as_a_likely_wrong_minimum(
     from identify.fit import _implausible_push
 
     pb = Problem(load_recording(f"{DATA}/triskele_push_release.csv"), ("tau", "lengths"))
-    theta = np.asarray(pb.to_theta(pb.initial_values))
+    theta = np.array(pb.to_theta(pb.initial_values))
     assert _implausible_push(pb, theta) == ""
     theta[pb.slices["push_force"]] *= 1.3  # a push mis-recorded by 30 %: plausible
     assert _implausible_push(pb, theta) == ""
