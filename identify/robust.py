@@ -20,7 +20,7 @@ import numpy as np
 NONE = 1e100  # a threshold no residual reaches: least squares (finite: inf - inf is NaN)
 HUBER = 3.0  # noise levels: Gaussian frames lie within it (99.7 %), the loss is quadratic there
 OUTLIER = 8.0  # robust levels: a frame this far from what its neighbours predict is an outlier
-AROUND = 51  # frames: the stretch over which the typical jump is measured
+AROUND = 15  # frames: the stretch over which the typical miss is measured (short: model errors come in bursts)
 MAD_TO_SIGMA = 1.0 / 0.6744897501960817  # median |z| of a unit Gaussian
 
 
