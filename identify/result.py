@@ -7,6 +7,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from . import robust
 from .least_squares import covariance
 from .problem import Problem
 
@@ -26,7 +27,7 @@ class Result:
     history: list = dataclasses.field(default_factory=list)  # loss per iteration (all stages)
     stages: list = dataclasses.field(default_factory=list)  # per stage: window, iterations, final loss
     message: str = ""
-    outliers: list = dataclasses.field(default_factory=list)  # times (s) of frames beyond robust.OUTLIER noise levels
+    outliers: list = dataclasses.field(default_factory=list)  # times (s) of frames thrown off (`robust.spikes`)
     # the model error of the values (`discretisation`): how far each moved on the last grid
     # refinement and with a tenth of the Newton tolerance; the model the values come from
     discretisation_errors: dict = dataclasses.field(default_factory=dict)
@@ -63,7 +64,7 @@ def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
     frame_se = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
     values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
     errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
-    res = (r.reshape(-1, 3) * problem.sigma)[keep]
+    res = (np.asarray(robust.unhuber(r, problem.huber)).reshape(-1, 3) * problem.sigma)[keep]  # before the Huber loss
     return Result(
         labels=problem.labels(),
         values=values,
