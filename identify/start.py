@@ -38,8 +38,8 @@ the polished ones go on to the ranking, and the message says what the closest re
 **Damping** comes from the decays: Kelvin-Voigt damping decays every mode (and its harmonics)
 in proportion to tau, so tau is the simulated tau times the ratio of the strongest matched
 recorded oscillation's decay to the model mode's (failing a match, the strongest one's within
-`TAU_MATCH`: damping itself lowers a mode's frequency, by 5 % on the cantilever at tau 11 ms), repeated at the new tau until it
-settles, and kept within a decade of nominal either way.
+`TAU_MATCH`: damping itself lowers a mode's frequency, by 5 % on the cantilever at tau 11 ms),
+repeated at the new tau until it settles, and kept within a decade of nominal either way.
 """
 
 from __future__ import annotations
@@ -296,7 +296,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             f"{problem.rec.path}: the model fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
         )
 
-    if not feats.static and _indistinct([found[i] for i in ok]):
+    if not feats.static and _indistinct([found[i][: feats.n_freq] for i in ok]):
         say(
             f"start: over the prior the model's features move less than {MATCH:.0%}: they cannot tell lengths apart; "
             "starting from the nominal lengths"
@@ -343,7 +343,8 @@ def _set_damping(problem, theta, tau: float):
 
 
 def _indistinct(features) -> bool:
-    """Whether every set of ``features`` lies within MATCH of the first (the nominal lengths')."""
+    """Whether every set of ``features`` (frequencies) lies within MATCH of the first (the
+    nominal lengths')."""
     ref = np.asarray(features[0])
     return all(np.max(np.abs(np.log(np.asarray(f) / ref))) < MATCH for f in features[1:])
 
