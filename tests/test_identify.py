@@ -173,11 +173,13 @@ def problems():
 
 
 def _check_fit(res, rec):
-    assert res.converged
+    """A fit of a shipped recording, made by the fit's own model on its own grid: there the
+    truth is the coarse model's, so the fit is checked unrefined (a refinement walks away from
+    it by the discretisation error: the suite's recordings, made finer, test that)."""
+    assert res.converged and not res.refinements
     _check_recovery(res, rec.truth, ("tau", "lengths"))
-    # on the fit's own grid (the tolerance refit), the residuals are the noise: the recording
-    # was made there
-    assert res.refinements[0]["reduced_chi2"] < 1.5
+    assert res.loss < 1.5  # reduced chi-square at the noise level
+    assert np.allclose(res.sigma, [rec.truth["noise_position"], rec.truth["noise_angle"]], rtol=0.2)
 
 
 SUITE = [f"{kind}_r{k}" for kind in ("triskele_push_release", "triskele_actuator_step", "cantilever_release") for k in (1, 2)]
@@ -217,7 +219,7 @@ def test_wild_frames_are_reported_and_change_nothing(problems, tmp_path):
 @pytest.mark.parametrize("name", ["triskele_push_release", "triskele_actuator_step"])
 def test_fit_recovers_truth(problems, name, tmp_path):
     pb = problems(name)
-    _check_fit(fit(pb, state_dir=tmp_path), pb.rec)
+    _check_fit(fit(pb, state_dir=tmp_path, refine_levels=0), pb.rec)
 
 
 class _Stop(Exception):
@@ -236,10 +238,10 @@ def test_interrupted_cantilever_fit_resumes_and_recovers_truth(problems, tmp_pat
             raise _Stop
 
     with pytest.raises(_Stop):
-        fit(pb, state_dir=tmp_path, progress=interrupt)
+        fit(pb, state_dir=tmp_path, progress=interrupt, refine_levels=0)
     assert (tmp_path / "fit_state.json").is_file()
     seen = []
-    res = fit(pb, state_dir=tmp_path, progress=lambda stage, *a: seen.append(stage))
+    res = fit(pb, state_dir=tmp_path, progress=lambda stage, *a: seen.append(stage), refine_levels=0)
     assert not any(s.startswith(("start", "candidate")) for s in seen)  # no work redone
     assert seen[0] == first[0]
     _check_fit(res, pb.rec)
