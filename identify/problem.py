@@ -275,10 +275,6 @@ class Problem:
         """Weighted residuals (M * 3,) at ``theta`` over the frames up to ``t_end`` (None: all)."""
         return self._residual(jnp.asarray(theta), self._noise(), *self.window(t_end))[0]
 
-    def whitened(self, theta, t_end=None) -> np.ndarray:
-        """(camera model - recording) / sigma (M, 3) at ``theta``, before the Huber loss."""
-        return np.asarray(self.seen(theta, t_end) - self.data) / self.sigma
-
     def motion(self, theta, t_end):
         """Simulated planar poses (robot frame) every dt up to ``t_end`` (same compiled program)."""
         m = self._residual(jnp.asarray(theta), self._noise(), *self.window(t_end))[1]
