@@ -50,11 +50,8 @@ def _parser():
 
 def _scale(values, unit: str):
     """(factor, label) of the SI prefix in which ``values`` (in ``unit``) read as 1-1000."""
-    size = float(np.max(np.abs(values))) if np.size(values) else 0.0
-    for factor, prefix in ((1.0, ""), (1e-3, "m"), (1e-6, "µ")):
-        if size >= factor:
-            return factor, f"{prefix}{unit}"
-    return 1e-9, f"n{unit}"
+    factor, prefix = _prefix(float(np.max(np.abs(values))) if np.size(values) else 0.0)
+    return factor, f"{prefix}{unit}"
 
 
 def _plots(out: Path, rec, seen, result):
@@ -196,6 +193,11 @@ UNITS = dict(
 PREFIXES = ((1e-9, "n"), (1e-6, "µ"), (1e-3, "m"), (1.0, ""))
 
 
+def _prefix(size: float):
+    """(factor, SI prefix) in which ``size`` reads as 1-1000 (nano at the smallest)."""
+    return next(((f, p) for f, p in reversed(PREFIXES) if size >= f), PREFIXES[0])
+
+
 def format_value(name, value, se, disc=None) -> str:
     """``value ± se [± disc] unit`` in the SI prefix that fits the value, to the digits its
     smallest uncertainty holds (two significant figures of it)."""
@@ -203,7 +205,7 @@ def format_value(name, value, se, disc=None) -> str:
     errs = [np.atleast_1d(np.asarray(e, float)) for e in (se, disc) if e is not None]
     unit = UNITS.get(name, "")
     size = float(np.max(np.abs(v))) or 1.0
-    factor, prefix = next(((f, p) for f, p in reversed(PREFIXES) if size >= f), PREFIXES[0])
+    factor, prefix = _prefix(size)
     if unit == "rad" and factor < 1e-3:
         factor, prefix = (1e-6, "µ")
     smallest = min((float(np.min(e[e > 0])) for e in errs if np.any(e > 0)), default=size * 1e-6) / factor

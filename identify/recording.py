@@ -36,7 +36,6 @@ import numpy as np
 from pcrjax.io.scene_file import read_toml
 from pcrjax.io.tables import TableError, read_table
 
-COLUMNS = ("t_s", "x_m", "y_m", "theta_rad")
 EXPERIMENTS = ("push_release", "actuator_step", "release")
 OVERRIDES = ("solver", "effects", "rod", "actuation", "load", "tip")
 SIDECAR_KEYS = {
@@ -55,6 +54,9 @@ def columns(units: dict) -> tuple[str, ...]:
     """The CSV header for ``units`` (quantity -> unit name; missing: SI)."""
     u = {**SI_UNITS, **units}
     return (f"t_{u['time']}", f"x_{u['position']}", f"y_{u['position']}", f"theta_{u['angle']}")
+
+
+COLUMNS = columns(SI_UNITS)  # t_s, x_m, y_m, theta_rad
 
 
 class RecordingError(ValueError):
@@ -175,15 +177,20 @@ def load_recording(path, require_sidecar: bool = False) -> Recording:
     return Recording(path=p, t=t * UNITS["time"][units["time"]], pose=pose * scale, **meta)
 
 
-def write_recording(path, t, pose, sidecar: dict) -> None:
-    """Write ``path`` (CSV, full float precision) and its sidecar TOML."""
+def write_frames(path, t, pose) -> None:
+    """Write the frames' CSV ``path`` (SI columns, full float precision)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     rows = [",".join(COLUMNS)] + [
         f"{ti!r},{x!r},{y!r},{th!r}" for ti, (x, y, th) in zip(np.asarray(t, float).tolist(), np.asarray(pose, float).tolist())
     ]
     p.write_text("\n".join(rows) + "\n")
-    sidecar_path(p).write_text(dumps_toml(sidecar))
+
+
+def write_recording(path, t, pose, sidecar: dict) -> None:
+    """Write ``path`` (CSV, full float precision) and its sidecar TOML."""
+    write_frames(path, t, pose)
+    sidecar_path(path).write_text(dumps_toml(sidecar))
 
 
 def _toml_value(v) -> str:

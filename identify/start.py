@@ -167,10 +167,11 @@ class Features:
             f"{f:.2f} Hz (decay {d:.3g}/s, {sh:.3g} m/rad)" for f, d, sh in zip(self.freq, self.decay, self.shape)
         )
 
-    def simulated(self, x):
+    def simulated(self, x, tau: float | None = None):
         """(physical frequencies Hz, decays 1/s, strengths, shapes) of the model's free motion at
-        log lengths ``x`` (None: theta's), the strongest first; None where the simulation fails."""
-        th = self.theta.copy()
+        log lengths ``x`` (None: theta's) and damping ``tau`` (None: theta's), the strongest
+        first; None where the simulation fails."""
+        th = self.theta.copy() if tau is None else _set_damping(self.problem, self.theta, tau)
         if x is not None:
             th[self.i_len] = x
         dt = float(self.problem.scene.solver.dt)
@@ -245,23 +246,19 @@ class Features:
         new tau until it moves less than 5 %, kept within TAU_RANGE of nominal."""
         if self.tau_sim is None:
             return tau_nominal, None
-        theta, tau, used = self.theta, self.tau_sim, None
-        try:
-            for _ in range(TAU_ITER):
-                self.theta = _set_damping(self.problem, theta, tau)
-                sim = self.simulated(x)
-                if sim is None or sim[0].size == 0:
-                    break
-                found = self._decay_ratio(sim)
-                if found is None:
-                    break
-                ratio, used = found
-                new = float(np.clip(tau * ratio, tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE))
-                settled, tau = abs(new / tau - 1.0) < 0.05, new
-                if settled:
-                    break
-        finally:
-            self.theta = theta
+        tau, used = self.tau_sim, None
+        for _ in range(TAU_ITER):
+            sim = self.simulated(x, tau)
+            if sim is None or sim[0].size == 0:
+                break
+            found = self._decay_ratio(sim)
+            if found is None:
+                break
+            ratio, used = found
+            new = float(np.clip(tau * ratio, tau_nominal / TAU_RANGE, tau_nominal * TAU_RANGE))
+            settled, tau = abs(new / tau - 1.0) < 0.05, new
+            if settled:
+                break
         return (tau, used) if used is not None else (tau_nominal, None)
 
 
@@ -270,7 +267,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     (log lengths) worth ranking in the time domain, best first). See the module's text."""
     theta = np.array(theta, float)
     feats = Features(problem, theta)
-    say = (lambda msg: progress(msg, 0, None, None)) if progress is not None else (lambda msg: None)  # noqa: E731
+    say = _sayer(progress)
     say(f"start: recorded {feats.describe()}")
     x0 = theta[feats.i_len]
     L0 = np.exp(x0)
@@ -334,6 +331,11 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     return _with_tau(problem, feats, theta, matched[0], say), matched
 
 
+def _sayer(progress):
+    """``say(message)`` through ``progress(stage, iteration, loss, step)`` (or nowhere)."""
+    return (lambda msg: progress(msg, 0, None, None)) if progress is not None else (lambda msg: None)
+
+
 def _set_damping(problem, theta, tau: float):
     """``theta`` (a copy) with every damping time ``tau``."""
     theta = np.array(theta, float)
@@ -368,8 +370,7 @@ def initial_tau(problem, theta, progress=None):
     theta = np.array(theta, float)
     if not problem.damping:
         return theta
-    say = (lambda msg: progress(msg, 0, None, None)) if progress is not None else (lambda msg: None)  # noqa: E731
-    return _with_tau(problem, Features(problem, theta), theta, None, say)
+    return _with_tau(problem, Features(problem, theta), theta, None, _sayer(progress))
 
 
 def platform_modes(scene):

@@ -21,7 +21,7 @@ import pcrjax
 from identify import experiment, modes, start
 from identify.fit import FitError, Problem, fit
 from identify.least_squares import levenberg_marquardt
-from identify.recording import load_recording
+from identify.recording import load_recording, write_frames
 from identify.result import summarize
 from identify.start import latin_hypercube
 
@@ -335,8 +335,7 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     wild = np.random.default_rng(3).choice(rec.frames, size=rec.frames // 50, replace=False)
     pose = rec.pose.copy()
     pose[wild, :2] += 5e-3 * np.array([1.0, -1.0])
-    rows = ["t_s,x_m,y_m,theta_rad"] + [f"{t!r},{x!r},{y!r},{a!r}" for t, (x, y, a) in zip(rec.t.tolist(), pose.tolist())]
-    path.write_text("\n".join(rows) + "\n")
+    write_frames(path, rec.t, pose)
     out = tmp_path / "fit"
     assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "1"]) == 0
     printed = capsys.readouterr().out
