@@ -6,7 +6,8 @@ persistent compilation cache. Importing pcrjax changes no JAX setting.
 
 Layout: ``physics/`` (rotations, rod, rigid platform), ``numerics/`` (BDF-alpha, spatial
 integration, shooting, Newton), ``robots/`` (legs, ends, actuation, the one assembly, statics and
-dynamics), ``io/`` (scene files, tables, outputs), `simulation` (the public solves), `cli`,
+dynamics), ``io/`` (scene files, tables, outputs), `simulation` (the public solves), `sweeps`
+(batched parameter sweeps), `cli`,
 ``bench/``.
 """
 
@@ -17,6 +18,7 @@ from .numerics import results
 from .robots.scene import Scene
 from .robots.signals import PosePath
 from .simulation import StaticResult, Trajectory, inverse_dynamics, rollout, simulate, solve_static
+from .sweeps import Sweep, sweep
 
 __all__ = [
     "ConvergenceError",
@@ -24,6 +26,7 @@ __all__ = [
     "Scene",
     "SceneError",
     "StaticResult",
+    "Sweep",
     "Trajectory",
     "enable_compilation_cache",
     "inverse_dynamics",
@@ -34,6 +37,7 @@ __all__ = [
     "shipped_scenes",
     "simulate",
     "solve_static",
+    "sweep",
     "with_solver",
 ]
 __version__ = "0.1.0"

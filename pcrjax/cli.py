@@ -1,4 +1,4 @@
-"""Command line: ``pcrjax simulate|static|inverse|bench|scenes``.
+"""Command line: ``pcrjax simulate|static|inverse|design|sweep|bench|scenes``.
 
 User errors (bad file, unknown key, non-physical value, no convergence) print one line naming
 the cause and exit with status 2, without a traceback.
@@ -96,6 +96,36 @@ def cmd_simulate(args) -> int:
         print(
             f"{scene.name}: {summary['steps_done']} steps in {summary['wall_s']:.3f} s after {summary['compile_s']:.1f} s compile "
             f"(real-time factor {summary['realtime_factor']:.2f}, {summary['newton_iterations_mean']:.2f} Newton iterations/step); wrote {out}/"
+        )
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    from .io.scene_file import read_toml, scene_path
+    from .sweeps import sweep, write
+
+    path = scene_path(args.scene)
+    data = read_toml(path)
+    for k in ("nodes", "integrator", "dt", "alpha", "duration", "tol"):
+        if getattr(args, k, None) is not None:
+            data.setdefault("solver", {})[k] = getattr(args, k)
+    vary = {}
+    for item in args.vary:
+        key, sep, spec = item.partition("=")
+        if not sep or not key.strip() or not spec.strip():
+            raise SceneError(f"--vary {item!r}: write KEY=a:b:n, KEY=a:b:n:log or KEY=v1,v2,...")
+        if key.strip() in vary:
+            raise SceneError(f"--vary {key.strip()}: given twice")
+        vary[key.strip()] = spec.strip()
+    out = _out_dir(args.out)
+    sw = sweep(data, vary, samples=args.samples, seed=args.seed, batch=args.batch, progress=not args.quiet, source=str(path))
+    failed = write(out, sw)
+    if not args.quiet:
+        t = sw.timings
+        print(
+            f"{sw.scene}: {len(sw.values)} members in {t['run_s']:.1f} s after {t['compile_s']:.1f} s compile "
+            f"({t['programs']} program(s), batch {t['batch']}); {len(failed)} did not converge"
+            f"{' (members ' + ', '.join(map(str, failed[:10])) + (' ...' if len(failed) > 10 else '') + ')' if failed else ''}; wrote {out}/"
         )
     return 0
 
@@ -330,6 +360,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     _add_solver_overrides(p)
     p.set_defaults(func=cmd_design)
+    p = sub.add_parser("sweep", help="run variants of a scene as batched programs; writes sweep.csv, summary.json and sweep.png")
+    p.add_argument("scene")
+    p.add_argument(
+        "--vary",
+        action="append",
+        required=True,
+        metavar="KEY=SPEC",
+        help="a scene key (rod.tau, solver.dt, platform.mass, tip.force[2], rods[1].length) and its values: a:b:n "
+        "(n values a..b), a:b:n:log (geometric), or v1,v2,...; repeat for a grid of all combinations",
+    )
+    p.add_argument("--samples", type=int, help="a Latin hypercube of this many members over the --vary ranges instead of a grid")
+    p.add_argument("--seed", type=int, default=0, help="seed of the Latin hypercube (default 0)")
+    p.add_argument("--batch", type=int, default=64, help="members per compiled program (default 64)")
+    p.add_argument("--out", default="out", help="output folder (default: out)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines or closing line")
+    _add_solver_overrides(p)
+    p.set_defaults(func=cmd_sweep)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
     p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele", "inverse", "design"], help="benchmark case")
     p.add_argument("--nodes", help="comma-separated N values for RK4; default per case")

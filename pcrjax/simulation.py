@@ -50,7 +50,8 @@ class Trajectory(eqx.Module):
     node ``positions`` (T, legs, N+1, 3), ``actuators`` (T, actuators) (no columns for a fixed
     rod), ``base_wrenches`` (T, legs, 2, 3) [n(0), m(0)] in N and N m, total ``energy`` (T,) J of rods, platform, weights and the end's load; per step (T-1,):
     Newton ``iterations``, final scaled ``residual``, ``jacobians`` evaluated and ``result`` (a
-    `pcrjax.numerics.results` code). Row 0 is the initial static equilibrium."""
+    `pcrjax.numerics.results` code; a failed initial equilibrium or a stale structure marks every
+    step). Row 0 is the initial static equilibrium."""
 
     t: jnp.ndarray
     position: jnp.ndarray
@@ -200,7 +201,7 @@ def _assemble(scene, static, state0, outs, steps):
         iterations=stats.iterations[:steps],
         residual=stats.residual[:steps],
         jacobians=stats.jacobians[:steps],
-        result=results.worst(scene.structure_result(), stats.result[:steps]),
+        result=results.worst(scene.structure_result(), static.stats.result, stats.result[:steps]),
         tol=scene.solver.newton.tol,
     )
 

@@ -4,7 +4,11 @@ import pcrjax
 from pcrjax import scene_from_dict
 
 
-def rod_scene(
+def rod_scene(**kw):
+    return scene_from_dict(rod_data(**kw), "<test>")
+
+
+def rod_data(
     *,
     L=0.4,
     r=1e-3,
@@ -25,11 +29,12 @@ def rod_scene(
     gravity=(0.0, 0.0, -9.81),
     **solver_extra,
 ):
+    """The scene dict of a cantilever (a rod along x, clamped at the origin, a tip load)."""
     eff = {"inertia": True, "gravity": False, "damping": False, "drag": False, "shear_extension": True}
     eff.update(effects or {})
     rod = {"length": L, "radius": r, "youngs_modulus": E, "shear_modulus": G, "density": rho}
     rod.update(rod_extra or {})
-    data = {
+    return {
         "name": "test",
         "robot": "rod",
         "solver": {
@@ -47,7 +52,6 @@ def rod_scene(
         "base": {"position": [0.0, 0.0, 0.0], "direction": [1.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
         "tip": {"force": list(force), "moment": list(moment), "release_time": release_time},
     }
-    return scene_from_dict(data, "<test>")
 
 
 def static_tip(scene):

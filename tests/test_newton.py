@@ -50,3 +50,35 @@ def test_implicit_derivatives_of_a_cubic_root(fallback):
     np.testing.assert_allclose(jax.jacfwd(f)(params), [dp, dq], rtol=1e-10)
     np.testing.assert_allclose(jax.grad(f)(params), [dp, dq], rtol=1e-10)
     np.testing.assert_allclose(jax.hessian(f)(params)[1, 1], dqq, rtol=1e-8)
+
+
+def _restart_root(params, start):
+    """The cubic's root from ``start``, restarted from 0.5 if that solve fails (a NaN start)."""
+    p, q = params[0], params[1]
+    fn = lambda x: x**3 + p * x - q  # noqa: E731
+    stages = newton.with_restart(jnp.full(1, start), jnp.full(1, 0.5))
+    x, _, stats = newton.solve(fn, jax.jacfwd(fn), newton.Jacobian.empty(1), SETTINGS, stages)
+    return x[0], stats
+
+
+def test_batched_solve_equals_single_solves_member_by_member():
+    """Under vmap the members keep their own iterates, stages and failures: a member that needs
+    the restart, one whose residual is NaN (it fails; the others are unharmed), and plain ones."""
+    params = jnp.array([[2.0, 3.0], [1.0, 1.0], [5.0, -2.0], [2.0, jnp.nan], [0.5, 7.0]])
+    starts = jnp.array([4.0, jnp.nan, -3.0, 1.0, 10.0])
+    xb, sb = jax.jit(jax.vmap(_restart_root))(params, starts)
+    single = jax.jit(_restart_root)
+    for i in range(len(starts)):
+        x, s = single(params[i], starts[i])
+        for name in ("iterations", "jacobians", "evaluations", "result"):
+            assert int(getattr(sb, name)[i]) == int(getattr(s, name)), (i, name)
+        if int(s.result) == 0:
+            assert abs(float(xb[i]) - float(x)) <= 1e-12 * abs(float(x))
+            assert abs(float(x) - _closed_form(*map(float, params[i]))[0]) < 1e-12
+    assert int(sb.jacobians[1]) >= 1 and int(sb.iterations[1]) > 0  # the restarted member converged
+    assert [int(r) for r in sb.result] == [0, 0, 0, 3, 0]
+    # Implicit derivatives of every member under vmap.
+    grads = jax.jit(jax.vmap(jax.grad(lambda prm, x0: _restart_root(prm, x0)[0])))(params, starts)
+    for i in (0, 1, 2, 4):
+        _, dq, dp, _ = _closed_form(*map(float, params[i]))
+        np.testing.assert_allclose(grads[i], [dp, dq], rtol=1e-10)

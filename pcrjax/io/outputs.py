@@ -267,3 +267,62 @@ def plot_design(path: Path, runs: dict, move, title: str):
     ax[1].grid(alpha=0.3)
     ax[1].set_title("actuator trajectories")
     _save(fig, path, title)
+
+
+def _axis_label(name: str, values) -> tuple[float, str]:
+    """Scale and label of a sweep column: lengths in a unit that fits them, others as named."""
+    if name.endswith("_m"):
+        f, unit = _scale(values[np.isfinite(values)] if np.any(np.isfinite(values)) else np.zeros(1))
+        return f, f"{name[:-2]} [{unit}]"
+    for suffix, unit in (("_s", "s"), ("_hz", "Hz"), ("_rad", "rad")):
+        if name.endswith(suffix):
+            return 1.0, f"{name[: -len(suffix)]} [{unit}]"
+    return 1.0, name
+
+
+def _log_axis(values) -> bool:
+    v = np.asarray(values, float)
+    return bool(np.all(v > 0) and v.max() / v.min() > 20)
+
+
+def plot_sweep(path: Path, sw):
+    """Each chosen output against each varied key (failed members as red crosses), or, for a
+    full grid of two keys, a map of each output over the grid."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    wanted = ("peak_m", "settling_s", "frequency_hz", "newton_iterations")
+    shown = [k for k in wanted if k in sw.outputs] or ["x_m", "y_m", "z_m", "newton_iterations"]
+    bad = ~sw.converged
+    keys = list(sw.keys)
+    if sw.grid_shape is not None and len(keys) == 2 and min(sw.grid_shape) > 1:
+        fig, axes = plt.subplots(1, len(shown), figsize=(4.2 * len(shown), 3.6), squeeze=False)
+        x = sw.values[:, 0].reshape(sw.grid_shape)[:, 0]
+        y = sw.values[:, 1].reshape(sw.grid_shape)[0, :]
+        for ax, name in zip(axes[0], shown, strict=True):
+            f, label = _axis_label(name, sw.outputs[name])
+            z = (sw.outputs[name] * f).reshape(sw.grid_shape)
+            mesh = ax.pcolormesh(x, y, z.T, shading="nearest", cmap="viridis")
+            fig.colorbar(mesh, ax=ax, label=label)
+            ax.plot(sw.values[bad, 0], sw.values[bad, 1], "rx", label="not converged")
+            ax.set_xlabel(keys[0])
+            ax.set_ylabel(keys[1])
+            ax.set_xscale("log" if _log_axis(x) else "linear")
+            ax.set_yscale("log" if _log_axis(y) else "linear")
+    else:
+        fig, axes = plt.subplots(len(shown), len(keys), figsize=(4.2 * len(keys), 2.6 * len(shown)), squeeze=False)
+        for i, name in enumerate(shown):
+            f, label = _axis_label(name, sw.outputs[name])
+            for j, key in enumerate(keys):
+                ax = axes[i, j]
+                order = np.argsort(sw.values[:, j], kind="stable")
+                v, out, b = sw.values[order, j], sw.outputs[name][order] * f, bad[order]
+                ax.plot(v[~b], out[~b], "o-" if len(keys) == 1 else "o", ms=3, lw=0.8)
+                ax.plot(v[b], np.where(np.isfinite(out[b]), out[b], np.nanmin(out) if np.any(np.isfinite(out)) else 0.0), "rx")
+                ax.set_xscale("log" if _log_axis(v) else "linear")
+                ax.set_xlabel(key)
+                ax.set_ylabel(label)
+                ax.grid(alpha=0.3)
+    _save(fig, path, f"{sw.scene}: sweep of {len(sw.values)} members ({int(bad.sum())} not converged)")

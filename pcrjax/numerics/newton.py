@@ -157,7 +157,95 @@ class _State(eqx.Module):
     finished: jnp.ndarray
 
 
-def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages):
+def _initial_state(jac0: Jacobian, stages: Stages) -> _State:
+    x0 = stages.starts[0]
+    n = x0.shape[0]
+    false, zero = jnp.asarray(False), jnp.asarray(0)
+    return _State(
+        k=zero, x=x0, r=jnp.zeros(n, x0.dtype), nrm=jnp.asarray(jnp.inf, x0.dtype), jac=jac0, need=stages.fresh[0], fresh=false,
+        dx=jnp.zeros(n, x0.dtype), lam=jnp.asarray(0.0, x0.dtype), it=zero, total_it=zero, nj=zero, evals=zero, started=false,
+        gave_up=false, trial_finite=jnp.asarray(True), finished=false,
+    )  # fmt: skip
+
+
+def _direction(st: _State, stages: Stages):
+    """The stage's homotopy parameter, and whether this pass refreshes the Jacobian (a new
+    direction is due and the last one asked for it)."""
+    return stages.s[st.k], st.started & (st.lam == 1.0) & st.need
+
+
+def _trial(st: _State):
+    """The direction (a new one after a move or a failed search, else the current one) and the
+    point this pass evaluates."""
+    new_dir = st.started & (st.lam == 1.0)
+    dx = jnp.where(new_dir, -st.jac.solve(st.r), st.dx)
+    return dx, st.x + st.lam * dx
+
+
+def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
+    """Armijo's test of the trial residual ``r_t``, the next state (its Jacobian not yet
+    Broyden-updated), the updated matrix and whether to factor it."""
+    x, r, nrm, lam, started = st.x, st.r, st.nrm, st.lam, st.started
+    K = stages.s.shape[0]
+    lam_min = 0.5**settings.max_backtracks
+    nrm_t = _norm(r_t)
+    finite = jnp.isfinite(nrm_t)
+    ok = (nrm_t <= (1.0 - 1e-4 * lam) * nrm) & finite
+    ok = ok | ~started  # the first pass of a stage only evaluates fn at its start
+    give_up = ~ok & (lam <= lam_min)
+    forced = give_up & st.fresh & finite
+    move = ok | forced
+    # Broyden's ("good") rank-one update keeps reused Jacobians accurate: superlinear
+    # convergence without re-evaluating the Jacobian. Refactoring is cheap next to a residual.
+    step_x = lam * dx
+    upd = move & started & (jnp.dot(step_x, step_x) > 0) & settings.broyden
+    J = st.jac.matrix
+    J_b = J + jnp.outer(r_t - r - J @ step_x, step_x) / jnp.where(upd, jnp.dot(step_x, step_x), 1.0)
+    # Next pass: after a move or a failed search, a new direction (lam = 1); else backtrack.
+    need_new = jnp.where(move & started, (nrm_t > settings.refresh_ratio * nrm) | forced, st.need) | give_up
+    searched = (move | give_up) & started
+    x_new = jnp.where(move, x + step_x, x)
+    nrm_new = jnp.where(move, nrm_t, nrm)
+    it_new = st.it + jnp.where(searched, 1, 0)
+    # The stage ends when it converges, runs out of directions or overflows; the solve ends
+    # after the last stage, or when done and only fallback stages remain.
+    s = stages.s[st.k]
+    ended = ~((nrm_new > settings.tol) & (it_new < settings.max_iter) & jnp.isfinite(nrm_new))
+    done = (nrm_new <= settings.tol) & (s == 1.0)
+    k_next = jnp.minimum(st.k + 1, K - 1)
+    finished = ended & ((st.k == K - 1) | (done & stages.fallback[k_next]))
+    advance = ended & ~finished
+    nxt = _State(
+        k=jnp.where(advance, k_next, st.k),
+        x=jnp.where(advance & ~stages.chain[k_next], stages.starts[k_next], x_new),
+        r=jnp.where(move, r_t, r),
+        nrm=jnp.where(advance, jnp.inf, nrm_new),
+        jac=st.jac,
+        need=jnp.where(advance, stages.fresh[k_next] | need_new, need_new),
+        fresh=jnp.where(advance, False, st.fresh & ~(move & started)),  # a new stage's start is a new point
+        dx=dx,
+        lam=jnp.where(advance, 0.0, jnp.where(move | give_up, 1.0, 0.5 * lam)),
+        it=jnp.where(advance, 0, it_new),
+        total_it=st.total_it + jnp.where(searched, 1, 0),
+        nj=st.nj,
+        evals=st.evals + 1,
+        started=~advance,
+        gave_up=jnp.where(advance, False, jnp.where(searched, give_up, st.gave_up)),
+        trial_finite=finite,
+        finished=finished,
+    )
+    return nxt, J_b, upd
+
+
+JAC_CHUNK = 4  # members whose Jacobians a batched solve evaluates together
+
+
+def _where(p, new, old):
+    """``new`` where the members' flags ``p`` (B,) hold, else ``old`` (pytrees, leading axis B)."""
+    return jax.tree.map(lambda a, b: jnp.where(p.reshape(p.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
+def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, batched: bool = False):
     """Solve ``fn(x, s) = 0`` stage after stage (`Stages`); returns ``(x, Jacobian, Stats)``. Never raises.
 
     One `while_loop` whose every pass evaluates ``fn`` once (so the residual is traced once):
@@ -167,78 +255,55 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     or a stale direction fails its line search. A fresh direction that fails is taken with the
     smallest step (damped Newton), so the iteration always moves. A stage ends when it meets the
     tolerance, reaches ``max_iter`` directions or its residual is not finite.
+
+    ``batched``: every array carries a leading axis of B independent members; ``fn(x, s)``
+    takes and returns the whole batch and ``jac_fn(x, s, members)`` the Jacobians of the listed
+    members (indices into the batch, one row of ``x`` and ``s`` each). The members' decisions
+    stay their own: Jacobians are evaluated only for the members that ask for one, `JAC_CHUNK`
+    at a time (a batched Jacobian costs in proportion to its members, and in a large batch a
+    few members refresh in most passes); a Broyden update is factored when some member takes
+    one. The loop runs until every member has finished; a finished member's state is held.
     """
-    x0 = stages.starts[0]
-    n = x0.shape[0]
-    K = stages.s.shape[0]
-    false, zero = jnp.asarray(False), jnp.asarray(0)
-    inf = jnp.asarray(jnp.inf, x0.dtype)
-    init = _State(
-        k=zero, x=x0, r=jnp.zeros(n, x0.dtype), nrm=inf, jac=jac0, need=stages.fresh[0], fresh=false, dx=jnp.zeros(n, x0.dtype),
-        lam=jnp.asarray(0.0, x0.dtype), it=zero, total_it=zero, nj=zero, evals=zero, started=false, gave_up=false,
-        trial_finite=jnp.asarray(True), finished=false,
-    )  # fmt: skip
-    lam_min = 0.5**settings.max_backtracks
+    per = jax.vmap if batched else (lambda f: f)
+
+    def maybe(p, make, old):
+        if not batched:
+            return jax.lax.cond(p, make, lambda: old)
+        return jax.lax.cond(jnp.any(p), lambda: _where(p, make(), old), lambda: old)
+
+    def fresh_jacobians(p, x, s, old):
+        if not batched:
+            return jax.lax.cond(p, lambda: Jacobian.factor(jac_fn(x, s)), lambda: old)
+        size = p.shape[0]
+        m = min(size, JAC_CHUNK)
+        chunks = -(-size // m)
+        order = jnp.nonzero(p, size=chunks * m, fill_value=size)[0]  # flagged members first, then past the end
+
+        def chunk(c, jac):
+            idx = jax.lax.dynamic_slice(order, (c * m,), (m,))
+            member = jnp.minimum(idx, size - 1)
+            new = jax.vmap(Jacobian.factor)(jac_fn(x[member], s[member], member))
+            return jax.tree.map(lambda a, v: a.at[idx].set(v, mode="drop"), jac, new)
+
+        return jax.lax.fori_loop(0, (jnp.sum(p) + m - 1) // m, chunk, old)
 
     def body(st: _State):
-        x, r, nrm, jac, need, fresh, dx, lam, started = st.x, st.r, st.nrm, st.jac, st.need, st.fresh, st.dx, st.lam, st.started
-        s = stages.s[st.k]
-        new_dir = started & (lam == 1.0)
-        refresh = new_dir & need
-        jac, fresh, nj = jax.lax.cond(
-            refresh,
-            lambda: (Jacobian.factor(jac_fn(x, s)), jnp.asarray(True), st.nj + 1),
-            lambda: (jac, fresh, st.nj),
-        )
-        dx = jnp.where(new_dir, -jac.solve(r), dx)
-        r_t = fn(x + lam * dx, s)
-        nrm_t = _norm(r_t)
-        finite = jnp.isfinite(nrm_t)
-        ok = (nrm_t <= (1.0 - 1e-4 * lam) * nrm) & finite
-        ok = ok | ~started  # the first pass of a stage only evaluates fn at its start
-        give_up = ~ok & (lam <= lam_min)
-        forced = give_up & fresh & finite
-        move = ok | forced
-        # Broyden's ("good") rank-one update keeps reused Jacobians accurate: superlinear
-        # convergence without re-evaluating the Jacobian. Refactoring is cheap next to a residual.
-        step_x = lam * dx
-        upd = move & started & (jnp.dot(step_x, step_x) > 0)
-        J_b = jac.matrix + jnp.outer(r_t - r - jac.matrix @ step_x, step_x) / jnp.where(upd, jnp.dot(step_x, step_x), 1.0)
-        jac = jax.lax.cond(upd & settings.broyden, lambda: Jacobian.factor(J_b), lambda: jac)
-        # Next pass: after a move or a failed search, a new direction (lam = 1); else backtrack.
-        need_new = jnp.where(move & started, (nrm_t > settings.refresh_ratio * nrm) | forced, need) | give_up
-        searched = (move | give_up) & started
-        x_new = jnp.where(move, x + lam * dx, x)
-        nrm_new = jnp.where(move, nrm_t, nrm)
-        it_new = st.it + jnp.where(searched, 1, 0)
-        # The stage ends when it converges, runs out of directions or overflows; the solve ends
-        # after the last stage, or when done and only fallback stages remain.
-        ended = ~((nrm_new > settings.tol) & (it_new < settings.max_iter) & jnp.isfinite(nrm_new))
-        done = (nrm_new <= settings.tol) & (s == 1.0)
-        k_next = jnp.minimum(st.k + 1, K - 1)
-        finished = ended & ((st.k == K - 1) | (done & stages.fallback[k_next]))
-        advance = ended & ~finished
-        return _State(
-            k=jnp.where(advance, k_next, st.k),
-            x=jnp.where(advance & ~stages.chain[k_next], stages.starts[k_next], x_new),
-            r=jnp.where(move, r_t, r),
-            nrm=jnp.where(advance, jnp.inf, nrm_new),
-            jac=jac,
-            need=jnp.where(advance, stages.fresh[k_next] | need_new, need_new),
-            fresh=jnp.where(advance, False, fresh & ~(move & started)),  # a new stage's start is a new point
-            dx=dx,
-            lam=jnp.where(advance, 0.0, jnp.where(move | give_up, 1.0, 0.5 * lam)),
-            it=jnp.where(advance, 0, it_new),
-            total_it=st.total_it + jnp.where(searched, 1, 0),
-            nj=nj,
-            evals=st.evals + 1,
-            started=~advance,
-            gave_up=jnp.where(advance, False, jnp.where(searched, give_up, st.gave_up)),
-            trial_finite=finite,
-            finished=finished,
-        )
+        s, refresh = per(_direction)(st, stages)
+        if batched:
+            refresh = refresh & ~st.finished
+        jac = fresh_jacobians(refresh, st.x, s, st.jac)
+        st = eqx.tree_at(lambda t: (t.jac, t.fresh, t.nj), st, (jac, st.fresh | refresh, st.nj + jnp.where(refresh, 1, 0)))
+        dx, x_t = per(_trial)(st)
+        r_t = fn(x_t, s)
+        nxt, J_b, upd = per(lambda a, b, c, d: _accept(a, b, settings, c, d))(st, stages, dx, r_t)
+        if batched:
+            upd = upd & ~st.finished
+        nxt = eqx.tree_at(lambda t: t.jac, nxt, maybe(upd, lambda: per(Jacobian.factor)(J_b), nxt.jac))
+        return _where(st.finished, st, nxt) if batched else nxt
 
-    st = jax.lax.while_loop(lambda st: ~st.finished, body, init)
+    init = per(_initial_state)(jac0, stages)
+    more = (lambda st: ~jnp.all(st.finished)) if batched else (lambda st: ~st.finished)
+    st = jax.lax.while_loop(more, body, init)
     result = jnp.where(
         st.nrm <= settings.tol,
         results.SUCCESSFUL,
@@ -266,23 +331,58 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
     stage solves ``fn``). The functions are traced once each (`jax.closure_convert`); the Newton
     loop and the tangent rule evaluate those traces. The forward solve sees its inputs through
     ``stop_gradient``: no tangent flows through its iterations.
+
+    Under `jax.vmap` the solve runs as one batched loop (`_batched`) that evaluates Jacobians
+    only when some member needs one; each member's iterates are those of its own solve.
     """
     x0 = stages.starts[0]
     f_conv, f_consts = jax.closure_convert(fn, x0)
     j_conv, j_consts = jax.closure_convert(jac_fn, x0)
-    fixed = lambda consts: [jax.lax.stop_gradient(c) for c in consts]  # noqa: E731
     if homotopy is None:
-        f_fc, j_fc = fixed(f_consts), fixed(j_consts)
-        g = lambda x, s: f_conv(x, *f_fc)  # noqa: E731
-        g_jac = lambda x, s: j_conv(x, *j_fc)  # noqa: E731
+        g, g_consts = (lambda x, s, c: f_conv(x, *c)), f_consts
+        g_jac, gj_consts = (lambda x, s, c: j_conv(x, *c)), j_consts
     else:
         h_conv, h_consts = jax.closure_convert(homotopy[0], x0, stages.s[0])
         hj_conv, hj_consts = jax.closure_convert(homotopy[1], x0, stages.s[0])
-        h_fc, hj_fc = fixed(h_consts), fixed(hj_consts)
-        g = lambda x, s: h_conv(x, s, *h_fc)  # noqa: E731
-        g_jac = lambda x, s: hj_conv(x, s, *hj_fc)  # noqa: E731
-    x, jac, stats = _staged_newton(g, g_jac, jax.lax.stop_gradient(jac0), settings, jax.lax.stop_gradient(stages))
+        g, g_consts = (lambda x, s, c: h_conv(x, s, *c)), h_consts
+        g_jac, gj_consts = (lambda x, s, c: hj_conv(x, s, *c)), hj_consts
+    fixed = jax.lax.stop_gradient
+    x, jac, stats = _batched(g, g_jac, settings)(fixed(g_consts), fixed(gj_consts), fixed(jac0), fixed(stages))
     return _implicit(f_conv, j_conv, x, f_consts, j_consts), jac, stats
+
+
+def _batched(g, g_jac, settings: NewtonSettings):
+    """`_staged_newton` of ``g(x, s, consts)`` as a function of its arrays, with a `vmap` rule.
+
+    Batched by plain `vmap`, every `lax.cond` of the loop whose predicate differs between members
+    becomes a `select` that runs both branches: every member would evaluate a Jacobian and
+    refactor at every pass. The rule runs `_staged_newton` on the batch instead.
+    """
+
+    @jax.custom_batching.custom_vmap
+    def run(consts, jac_consts, jac0, stages):
+        return _staged_newton(lambda x, s: g(x, s, consts), lambda x, s: g_jac(x, s, jac_consts), jac0, settings, stages)
+
+    @run.def_vmap
+    def rule(size, in_batched, consts, jac_consts, jac0, stages):
+        axes = lambda flags: [0 if b else None for b in flags]  # noqa: E731
+        spread = lambda tree, flags: jax.tree.map(  # noqa: E731
+            lambda a, b: a if b else jnp.broadcast_to(a, (size,) + jnp.shape(a)), tree, flags
+        )
+        fn = jax.vmap(lambda x, s, c: g(x, s, c), in_axes=(0, 0, axes(in_batched[0])))
+        jac_fn = jax.vmap(lambda x, s, c: g_jac(x, s, c), in_axes=(0, 0, axes(in_batched[1])))
+        pick = lambda members: [c[members] if b else c for c, b in zip(jac_consts, in_batched[1], strict=True)]  # noqa: E731
+        out = _staged_newton(
+            lambda x, s: fn(x, s, consts),
+            lambda x, s, members: jac_fn(x, s, pick(members)),
+            spread(jac0, in_batched[2]),
+            settings,
+            spread(stages, in_batched[3]),
+            batched=True,
+        )
+        return out, jax.tree.map(lambda _: True, out)
+
+    return run
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1))
