@@ -378,7 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_solver_overrides(p)
     p.set_defaults(func=cmd_sweep)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
-    p.add_argument("case", choices=["cantilever", "stewart_gough", "triskele", "inverse", "design"], help="benchmark case")
+    p.add_argument(
+        "case", choices=["cantilever", "stewart_gough", "triskele", "inverse", "design", "batch"], help="benchmark case"
+    )
     p.add_argument("--nodes", help="comma-separated N values for RK4; default per case")
     p.add_argument("--euler-nodes", help="comma-separated N values for explicit Euler (empty string: none); default per case")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
@@ -397,6 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gradient-steps", type=int, default=200, help="steps of the gradient timing (default 200)")
     p.add_argument("--tol", type=float, default=1e-10, help="Newton tolerance of the measured runs (reference: 1e-12)")
     p.add_argument("--horizons", default="100,1000,10000", help="design: rollout lengths (steps) of the gradient memory table")
+    p.add_argument(
+        "--batches", default="1,8,64", help="batch: batch sizes (default 1,8,64; N from --nodes, steps from --gradient-steps)"
+    )
     p.add_argument("--json", help="also write the table as JSON to this file")
     p.set_defaults(func=cmd_bench)
     p = sub.add_parser("scenes", help="list the shipped scenes")

@@ -7,7 +7,8 @@ over time; ``rel err``: over the reference's largest displacement), the internal
 (nodes x shooting segments) and the XLA:CPU kernels one RK4/Euler node step runs
 (`kernels.node_step_kernels`): on this backend each kernel costs a fixed overhead, so this count
 is the lever on per-step time. ``--noise`` (Stewart-Gough) adds thesis Tables 4.3-4.4; ``--gradient`` the cost of a reverse-mode
-gradient through a rollout (`gradient.py`); ``inverse`` times inverse dynamics (`inverse.py`), ``design`` trajectory design (`design.py`).
+gradient through a rollout (`gradient.py`); ``inverse`` times inverse dynamics (`inverse.py`), ``design`` trajectory design (`design.py`),
+``batch`` batched rollouts against a loop of single runs (`batch.py`).
 """
 
 from __future__ import annotations
@@ -122,8 +123,13 @@ def _noise_table(nodes, duration):
 def run_bench(args) -> dict:
     """Print (and with ``--json`` write) the benchmark of ``args.case``."""
     out: dict = {"case": args.case, "rows": []}
-    if args.case in ("inverse", "design"):
-        if args.case == "inverse":
+    if args.case in ("inverse", "design", "batch"):
+        if args.case == "batch":
+            from .batch import bench_batch
+
+            sizes = [int(b) for b in args.batches.split(",")]
+            out["rows"] = bench_batch(sizes, int(args.nodes or 20), args.gradient_steps)
+        elif args.case == "inverse":
             from .inverse import bench_inverse
 
             out["rows"] = bench_inverse(args.nodes, args.duration)
