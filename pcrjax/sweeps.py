@@ -53,6 +53,15 @@ def _parts(key: str):
     return [(m.group(1), None if m.group(2) is None else int(m.group(2))) for m in parts]
 
 
+def _typed(old, value: float):
+    """``value`` as an integer where the file holds an integer there (``solver.nodes``)."""
+    if isinstance(old, int) and not isinstance(old, bool):
+        if value != int(value):
+            raise SceneError(f"{value:g}: the scene holds an integer here")
+        return int(value)
+    return float(value)
+
+
 def _set(data: dict, key: str, value: float):
     """Set ``key`` (dotted, with optional [i]) of the parsed scene ``data`` to ``value``."""
     parts = _parts(key)
@@ -62,7 +71,7 @@ def _set(data: dict, key: str, value: float):
         if not isinstance(node, dict):
             raise SceneError(f"sweep key {key!r}: {name!r} is not inside a table")
         if last and idx is None:
-            node[name] = float(value)
+            node[name] = _typed(node.get(name), value)
             return
         if name not in node:
             if idx is not None:
@@ -75,7 +84,7 @@ def _set(data: dict, key: str, value: float):
         if not isinstance(seq, list) or idx >= len(seq):
             raise SceneError(f"sweep key {key!r}: {name!r} has no entry {idx}")
         if last:
-            seq[idx] = float(value)
+            seq[idx] = _typed(seq[idx], value)
             return
         node = seq[idx]
 
@@ -194,9 +203,9 @@ def _scenes(data: dict, source: str, keys, values):
     scenes = []
     for m, row in enumerate(values):
         d = copy.deepcopy(data)
-        for k, v in zip(keys, row, strict=True):
-            _set(d, k, v)
         try:
+            for k, v in zip(keys, row, strict=True):
+                _set(d, k, v)
             scenes.append(scene_from_dict(d, source))
         except SceneError as e:
             raise SceneError(
