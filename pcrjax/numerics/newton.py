@@ -275,7 +275,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
         if not batched:
             return jax.lax.cond(p, lambda: Jacobian.factor(jac_fn(x, s)), lambda: old)
         size = p.shape[0]
-        if size <= JAC_CHUNK:  # (gathering the whole batch ran 5-10x slower on XLA:CPU)
+        if size <= JAC_CHUNK:  # (the gather-and-scatter loop over a whole batch ran 5-10x slower on XLA:CPU)
             return maybe(p, lambda: jax.vmap(Jacobian.factor)(jac_fn(x, s, jnp.arange(size))), old)
         m = JAC_CHUNK
         chunks = -(-size // m)
