@@ -35,7 +35,7 @@ from .errors import SceneError
 from .io.scene_file import read_toml, scene_from_dict, scene_path
 from .numerics import results
 from .robots import statics
-from .simulation import rollout, static_result
+from .simulation import _signature, rollout, static_result
 
 _PART = re.compile(r"^([A-Za-z_]\w*)(?:\[(\d+)\])?$")
 SETTLE_BAND = 0.02  # settled: within this fraction of the largest excursion
@@ -123,17 +123,23 @@ def latin_hypercube(ranges: dict, samples: int, seed: int = 0) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
-def _range_from_spec(key: str, spec: str):
-    f = spec.split(":")
+def _sample_range(key: str, v):
+    """(lo, hi, log) of a key sampled by the Latin hypercube: a spec ``a:b[:n][:log]`` or values
+    whose smallest and largest are the range."""
     try:
-        lo, hi = float(f[0]), float(f[1])
-    except (ValueError, IndexError):
-        raise SceneError(f"{key}={spec!r}: --samples needs ranges a:b[:n][:log]") from None
-    log = f[-1] == "log"
+        f = v.split(":") if isinstance(v, str) else np.asarray(v, float)
+        if isinstance(v, str):
+            lo, hi, log = float(f[0]), float(f[1]), f[-1] == "log"
+        elif f.ndim == 1 and f.size >= 2:
+            lo, hi, log = float(f.min()), float(f.max()), False
+        else:
+            raise IndexError
+    except (ValueError, IndexError, TypeError):
+        raise SceneError(f"{key}={v!r}: --samples needs a range a:b[:n][:log] or at least two values") from None
     if log and (lo <= 0 or hi <= 0):
-        raise SceneError(f"{key}={spec!r}: a log range needs positive ends")
+        raise SceneError(f"{key}={v!r}: a log range needs positive ends")
     if not lo < hi:
-        raise SceneError(f"{key}={spec!r}: empty range")
+        raise SceneError(f"{key}={v!r}: empty range")
     return lo, hi, log
 
 
@@ -173,14 +179,7 @@ def _members(vary: dict, samples: int | None, seed: int):
     if samples is not None:
         if samples < 1:
             raise SceneError("--samples must be at least 1")
-        ranges = {}
-        for k, v in vary.items():
-            if not isinstance(v, str):
-                v = np.asarray(v, float)
-                if v.ndim != 1 or v.size < 2:
-                    raise SceneError(f"{k}: --samples needs a range (lo, hi)")
-                v = f"{v.min()}:{v.max()}"
-            ranges[k] = _range_from_spec(k, v)
+        ranges = {k: _sample_range(k, v) for k, v in vary.items()}
         return keys, latin_hypercube(ranges, samples, seed), None
     axes = []
     for k, v in vary.items():
@@ -222,11 +221,6 @@ def _same(a, b) -> bool:
     la, ta = jax.tree.flatten(a)
     lb, tb = jax.tree.flatten(b)
     return ta == tb and all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(la, lb, strict=True))
-
-
-def _signature(scene):
-    leaves, treedef = jax.tree.flatten(scene)
-    return treedef, tuple(np.shape(x) for x in leaves)
 
 
 def _run_dynamic(scene):

@@ -72,6 +72,13 @@ def test_cli_sweep_of_a_static_scene(tmp_path):
     assert z[(-2.0, 0.4)] < z[(-0.5, 0.4)] < 0 and z[(-2.0, 0.4)] < z[(-2.0, 0.3)]
     assert json.loads((out / "summary.json").read_text())["members"] == 6
     assert (out / "sweep.png").stat().st_size > 0
+    # The same ranges as a Latin hypercube of six members: one per sixth of each range.
+    argv = ["sweep", scene, "--vary", "tip.force[2]=-2:-0.5", "--vary", "rod.length=0.3:0.4", "--samples", "6", "--out", str(out)]
+    assert main(argv + ["--quiet"]) == 0
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    force = sorted(float(r["tip.force[2]"]) for r in rows)
+    assert len(rows) == 6 and [int((f + 2.0) / 0.25) for f in force] == list(range(6))
+    assert all(float(r["converged"]) == 1.0 for r in rows)
 
 
 BAD_VARY = {

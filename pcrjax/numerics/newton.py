@@ -273,7 +273,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
 
     def fresh_jacobians(p, x, s, old):
         if not batched:
-            return jax.lax.cond(p, lambda: Jacobian.factor(jac_fn(x, s)), lambda: old)
+            return maybe(p, lambda: Jacobian.factor(jac_fn(x, s)), old)
         size = p.shape[0]
         if size <= JAC_CHUNK:  # (the gather-and-scatter loop over a whole batch ran 5-10x slower on XLA:CPU)
             return maybe(p, lambda: jax.vmap(Jacobian.factor)(jac_fn(x, s, jnp.arange(size))), old)
@@ -371,8 +371,8 @@ def _batched(g, g_jac, settings: NewtonSettings):
         spread = lambda tree, flags: jax.tree.map(  # noqa: E731
             lambda a, b: a if b else jnp.broadcast_to(a, (size,) + jnp.shape(a)), tree, flags
         )
-        fn = jax.vmap(lambda x, s, c: g(x, s, c), in_axes=(0, 0, axes(in_batched[0])))
-        jac_fn = jax.vmap(lambda x, s, c: g_jac(x, s, c), in_axes=(0, 0, axes(in_batched[1])))
+        fn = jax.vmap(g, in_axes=(0, 0, axes(in_batched[0])))
+        jac_fn = jax.vmap(g_jac, in_axes=(0, 0, axes(in_batched[1])))
         pick = lambda members: [c[members] if b else c for c, b in zip(jac_consts, in_batched[1], strict=True)]  # noqa: E731
         out = _staged_newton(
             lambda x, s: fn(x, s, consts),
