@@ -19,15 +19,20 @@ from .errors import ConvergenceError, SceneError
 EXIT_USER_ERROR = 2
 
 
-def _scene(args):
-    from .io.scene_file import load_scene, with_solver
-
-    scene = load_scene(args.scene)
-    changes = {
+def _solver_overrides(args) -> dict:
+    """The [solver] settings given on the command line (`_add_solver_overrides`)."""
+    return {
         k: getattr(args, k)
         for k in ("nodes", "integrator", "dt", "alpha", "duration", "tol")
         if getattr(args, k, None) is not None
     }
+
+
+def _scene(args):
+    from .io.scene_file import load_scene, with_solver
+
+    scene = load_scene(args.scene)
+    changes = _solver_overrides(args)
     return with_solver(scene, **changes) if changes else scene
 
 
@@ -106,9 +111,7 @@ def cmd_sweep(args) -> int:
 
     path = scene_path(args.scene)
     data = read_toml(path)
-    for k in ("nodes", "integrator", "dt", "alpha", "duration", "tol"):
-        if getattr(args, k, None) is not None:
-            data.setdefault("solver", {})[k] = getattr(args, k)
+    data.setdefault("solver", {}).update(_solver_overrides(args))
     vary = {}
     for item in args.vary:
         key, sep, spec = item.partition("=")
@@ -122,10 +125,10 @@ def cmd_sweep(args) -> int:
     failed = write(out, sw)
     if not args.quiet:
         t = sw.timings
+        which = f" (members {', '.join(map(str, failed[:10]))}{' ...' if len(failed) > 10 else ''})" if failed else ""
         print(
             f"{sw.scene}: {len(sw.values)} members in {t['run_s']:.1f} s after {t['compile_s']:.1f} s compile "
-            f"({t['programs']} program(s), batch {t['batch']}); {len(failed)} did not converge"
-            f"{' (members ' + ', '.join(map(str, failed[:10])) + (' ...' if len(failed) > 10 else '') + ')' if failed else ''}; wrote {out}/"
+            f"({t['programs']} program(s), batch {t['batch']}); {len(failed)} did not converge{which}; wrote {out}/"
         )
     return 0
 

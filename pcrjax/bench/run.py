@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from ..errors import SceneError
 from ..io.scene_file import load_scene, with_solver
 from ..simulation import simulate
 from .cases import cases
@@ -127,8 +128,12 @@ def run_bench(args) -> dict:
         if args.case == "batch":
             from .batch import bench_batch
 
-            sizes = [int(b) for b in args.batches.split(",")]
-            out["rows"] = bench_batch(sizes, int(args.nodes or 20), args.gradient_steps)
+            try:
+                sizes = [int(b) for b in args.batches.split(",")]
+                nodes = int(args.nodes or 20)
+            except ValueError:
+                raise SceneError("bench batch: --batches takes integers (1,8,64) and --nodes one integer") from None
+            out["rows"] = bench_batch(sizes, nodes, args.gradient_steps)
         elif args.case == "inverse":
             from .inverse import bench_inverse
 
