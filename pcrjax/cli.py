@@ -133,6 +133,41 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_pareto(args) -> int:
+    from .io.scene_file import load_scene, with_solver
+    from .pareto import run_pareto, write
+
+    scene = load_scene(args.scene)
+    if args.duration is not None:
+        scene = with_solver(scene, duration=args.duration)
+    if args.target_error is not None and not args.target_error > 0:
+        raise SceneError(f"--target-error must be > 0, got {args.target_error}")
+    out = _out_dir(args.out)
+    say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    families = [f.strip() for f in args.families.split(",") if f.strip()] if args.families else None
+    rows, ref = run_pareto(scene, quick=args.quick, families=families, reference_nodes=args.reference_nodes, progress=say)
+    best = write(out, scene.name, rows, ref, args.target_error)
+    if not args.quiet:
+        print(f"{'setting':<34}{'error':>11}{'wall s/sim s':>14}{'compile s':>11}{'front':>7}")
+        for r in rows:
+            print(
+                f"{r['label']:<34}{r['error']:>11.2e}{r['wall_per_sim_s']:>14.3g}{r['compile_s']:>11.1f}{'*' if r['pareto'] else '':>7}"
+            )
+        print(
+            f"reference: RK4 N {ref.nodes}, dt {ref.dt:g}, observed order {ref.observed_order:.2f}, extrapolation changed it by "
+            f"{ref.extrapolation_change:.1e}, N/2 differs by {ref.spatial_change:.1e} (relative)"
+        )
+    if args.target_error is not None:
+        if best is None:
+            print(f"no setting reaches error {args.target_error:g}; the finest reaches {min(r['error'] for r in rows):.2e}")
+        else:
+            print(
+                f"cheapest setting with error <= {args.target_error:g}: {best['label']} ({best['family']}), error "
+                f"{best['error']:.2e}, {best['wall_per_sim_s']:.3g} wall s per simulated s"
+            )
+    return 0
+
+
 def cmd_scenes(args) -> int:
     from .io.scene_file import shipped_scenes
 
@@ -380,6 +415,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress lines or closing line")
     _add_solver_overrides(p)
     p.set_defaults(func=cmd_sweep)
+    p = sub.add_parser(
+        "pareto",
+        help="the cost of accuracy: error against a Richardson reference vs wall time over N, dt, alpha, tol, RK4/Euler, "
+        "Cosserat/Kirchhoff and the lumped model; writes pareto.csv, summary.json and pareto.png",
+    )
+    p.add_argument("scene")
+    p.add_argument("--target-error", type=float, help="print the cheapest setting whose relative error is at most this")
+    p.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")
+    p.add_argument("--reference-nodes", type=int, help="N of the reference (default: twice the largest N compared)")
+    p.add_argument("--quick", action="store_true", help="fewer settings per family (a first look, or a test)")
+    p.add_argument("--families", help="comma-separated subset of N,dt,alpha,tol,euler,kirchhoff,lumped (default: all)")
+    p.add_argument("--out", default="out", help="output folder (default: out)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_pareto)
     p = sub.add_parser("bench", help="benchmark: time per step, real-time factor, compile time, iterations, error")
     p.add_argument(
         "case", choices=["cantilever", "stewart_gough", "triskele", "inverse", "design", "batch"], help="benchmark case"

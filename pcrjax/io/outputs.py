@@ -326,3 +326,36 @@ def plot_sweep(path: Path, sw):
                 ax.set_ylabel(label)
                 ax.grid(alpha=0.3)
     _save(fig, path, f"{sw.scene}: sweep of {len(sw.values)} members ({int(bad.sum())} not converged)")
+
+
+def plot_pareto(path: Path, rows, title: str):
+    """Relative error against wall seconds per simulated second, one marker per family, the
+    Pareto front as a line and the scene's own (thesis) setting as a star."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    families = list(dict.fromkeys(r["family"] for r in rows))
+    marks = "osD^v<>ph"
+    for i, fam in enumerate(families):
+        rs = [r for r in rows if r["family"] == fam and not r["thesis"]]
+        if rs:
+            ax.plot(
+                [r["wall_per_sim_s"] for r in rs], [r["error"] for r in rs], marks[i % len(marks)], ms=6, alpha=0.8, label=fam
+            )
+            for r in rs:
+                ax.annotate(r["label"], (r["wall_per_sim_s"], r["error"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    front = sorted((r for r in rows if r["pareto"]), key=lambda r: r["wall_per_sim_s"])
+    ax.plot([r["wall_per_sim_s"] for r in front], [r["error"] for r in front], "k-", lw=1, label="Pareto front")
+    for r in rows:
+        if r["thesis"]:
+            ax.plot(r["wall_per_sim_s"], r["error"], "r*", ms=14, label=r["label"])
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time per simulated second [s] (after compilation)")
+    ax.set_ylabel("max position error / largest displacement")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    _save(fig, path, title)

@@ -1,0 +1,81 @@
+"""`pcrjax pareto`: the Richardson reference against Euler-Bernoulli, the front and the cheapest
+setting on hand-made rows, and the command on a small scene."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from helpers import rod_scene
+from oracles import euler_bernoulli_tip, first_frequency_hz, fit_sinusoids
+from test_cli import _write
+
+from pcrjax.cli import main
+from pcrjax.pareto import cheapest, pareto_front, reference
+
+SCENE = """
+name = "small"
+robot = "rod"
+[solver]
+nodes = 6
+dt = 5e-3
+alpha = -0.2
+duration = 0.05
+[rod]
+length = 0.4
+radius = 1e-3
+youngs_modulus = 207e9
+shear_modulus = 79.61e9
+density = 8000.0
+[tip]
+force = [0.0, 0.0, -0.5]
+release_time = 0.0
+"""
+
+
+def test_richardson_reference_oscillates_at_the_euler_bernoulli_frequency():
+    # Small load (2 mN): the linear cantilever, whose first frequency is closed-form.
+    scene = rod_scene(force=(0.0, 0.0, -2e-3), nodes=12, dt=5e-3, duration=0.3, alpha=-0.4)
+    ref = reference(scene, [5e-3], 12, progress=lambda m: None)
+    f1 = first_frequency_hz(0.4, 207e9, 1e-3, 8000.0)
+    [(w, _)], _ = fit_sinusoids(ref.t, ref.position[:, 2], [2 * np.pi * f1])
+    assert abs(w / (2 * np.pi) / f1 - 1) < 5e-4  # one run at dt 2.5e-3 alone is off by 2.6e-3
+    assert abs(-ref.position[0, 2] / euler_bernoulli_tip(2e-3, 0.4, 207e9, 1e-3) - 1) < 1e-3
+
+
+def test_front_and_cheapest_on_hand_made_rows():
+    rows = [
+        dict(label="a", error=1e-2, wall_per_sim_s=1.0),
+        dict(label="b", error=1e-3, wall_per_sim_s=2.0),
+        dict(label="c", error=2e-3, wall_per_sim_s=3.0),  # beaten by b in both
+        dict(label="d", error=1e-4, wall_per_sim_s=10.0),
+        dict(label="e", error=np.inf, wall_per_sim_s=np.inf),  # failed
+    ]
+    assert list(pareto_front(rows)) == [True, True, False, True, False]
+    assert cheapest(rows, 5e-3)["label"] == "b"
+    assert cheapest(rows, 1e-5) is None
+
+
+def test_pareto_command_on_a_small_scene(tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(
+        ["pareto", _write(tmp_path, SCENE), "--quick", "--families", "dt,lumped", "--target-error", "0.05", "--out", str(out)]
+    )
+    assert code == 0
+    rows = list(csv.DictReader(open(out / "pareto.csv")))
+    fams = [r["family"] for r in rows]
+    assert fams.count("thesis") == 1 and fams.count("dt") == 2 and fams.count("lumped") == 2, fams
+    err = {r["label"]: float(r["error"]) for r in rows}
+    assert all(np.isfinite(e) and e > 0 for e in err.values()), err
+    assert err["dt 0.01"] > err["dt 0.0025"]  # a larger step is further from the reference
+    assert err["lumped 8 segments"] < err["lumped 4 segments"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["front"] and summary["cheapest_meeting_target"]["error"] <= 0.05
+    assert (out / "pareto.png").stat().st_size > 0
+    assert "cheapest setting with error <= 0.05" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args", [["--families", "dt,speed"], ["--target-error", "-1"]])
+def test_pareto_bad_input(tmp_path, capsys, args):
+    assert main(["pareto", _write(tmp_path, SCENE), "--out", str(tmp_path / "o"), *args]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
