@@ -8,29 +8,12 @@ import numpy as np
 import pytest
 from helpers import rod_scene
 from oracles import euler_bernoulli_tip, first_frequency_hz, fit_sinusoids
-from test_cli import _write
+from test_cli import GOOD, _write
 
 from pcrjax.cli import main
 from pcrjax.pareto import cheapest, pareto_front, reference
 
-SCENE = """
-name = "small"
-robot = "rod"
-[solver]
-nodes = 6
-dt = 5e-3
-alpha = -0.2
-duration = 0.05
-[rod]
-length = 0.4
-radius = 1e-3
-youngs_modulus = 207e9
-shear_modulus = 79.61e9
-density = 8000.0
-[tip]
-force = [0.0, 0.0, -0.5]
-release_time = 0.0
-"""
+SCENE = GOOD + "release_time = 0.0\n"  # the small rod of test_cli, released at t = 0
 
 
 def test_richardson_reference_oscillates_at_the_euler_bernoulli_frequency():
