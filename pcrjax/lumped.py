@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from .errors import ConvergenceError, SceneError
-from .physics.lumped import Chain, qexp, qmul, qrotate_inverse
+from .physics.lumped import Chain, displaced, normalised, qmul, qrotate_inverse
 from .physics.rotations import quaternion
 
 METHODS = ("kvaerno5", "tsit5")
@@ -74,14 +74,6 @@ def _potential(scene, chain: Chain, p, t):
     return e
 
 
-def _normalised(q):
-    return q / jnp.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _rotate(q, d):
-    return _normalised(jax.vmap(qmul)(q, jax.vmap(qexp)(d)))
-
-
 def lumped_static(scene, segments: int, *, load_steps: int = 8, max_iterations: int = 40, tol: float = 1e-13):
     """Equilibrium (positions (N, 3), quaternions (N, 4), converged) of the chain under the
     scene's loads at t = 0, reached in ``load_steps`` equal load increments by Newton's method
@@ -92,7 +84,7 @@ def lumped_static(scene, segments: int, *, load_steps: int = 8, max_iterations: 
     scale = jnp.concatenate([jnp.full(3, f_scale), jnp.full(3, f_scale * chain.l)])
 
     def residual(d, p, q, lam):
-        pp, qq = p + d[:, :3], _rotate(q, d[:, 3:])
+        pp, qq = displaced(p, q, d)
         fp, ft = chain.elastic_forces(pp, qq)
         force, moment = _external(scene, chain, qq, t0)
         return (jnp.concatenate([fp - lam * force, ft - lam * moment], axis=1) / scale).reshape(-1)
@@ -109,7 +101,7 @@ def lumped_static(scene, segments: int, *, load_steps: int = 8, max_iterations: 
             p, q, k, _ = c
             J, r = jax.jacfwd(lambda d: (residual(d, p, q, lam),) * 2, has_aux=True)(zero)
             d = -jnp.linalg.solve(J.reshape(r.size, r.size), r).reshape(segments, 6)
-            return p + d[:, :3], _rotate(q, d[:, 3:]), k + 1, jnp.max(jnp.abs(r))
+            return *displaced(p, q, d), k + 1, jnp.max(jnp.abs(r))
 
         # The loop stops once the residual before a step is below tol: that step is still taken.
         p, q, _, res = jax.lax.while_loop(cond, body, (p, q, 0, jnp.inf))
@@ -117,7 +109,7 @@ def lumped_static(scene, segments: int, *, load_steps: int = 8, max_iterations: 
 
     p, q = chain.straight()
     lams = jnp.arange(1, load_steps + 1) / load_steps
-    (p, q, ok), res = jax.lax.scan(newton, (p, q, jnp.array(True)), lams)
+    (p, q, ok), _ = jax.lax.scan(newton, (p, q, jnp.array(True)), lams)
     return p, q, ok
 
 
@@ -131,7 +123,7 @@ def _vector_field(scene, chain: Chain, t0):
 
     def f(t, y, args):
         p, q, v, w = y
-        qn = _normalised(q)
+        qn = normalised(q)
         # The ODE sees the loads just after t0 (a load released at t0 acts only on the equilibrium).
         force, moment = _external(scene, chain, qn, jnp.maximum(t, after))
         a, alpha = chain.accelerations(p, qn, v, w, force, moment)
@@ -172,7 +164,7 @@ def lumped_rollout(
     after = _after(scene, t[0])
 
     def energy(p, q, v, w, ti):
-        return chain.energy(p, _normalised(q)) + chain.kinetic(q, v, w) + _potential(scene, chain, p, jnp.maximum(ti, after))
+        return chain.energy(p, normalised(q)) + chain.kinetic(v, w) + _potential(scene, chain, p, jnp.maximum(ti, after))
 
     e = jax.vmap(energy)(ps, qs, vs, ws, t)
     base = jnp.broadcast_to(chain.base_position, (t.shape[0], 1, 3))
@@ -209,7 +201,7 @@ def natural_frequencies(scene, segments: int):
     p, q = chain.straight()
 
     def e(d):
-        return chain.energy(p + d[:, :3], _rotate(q, d[:, 3:]))
+        return chain.energy(*displaced(p, q, d))
 
     n = 6 * segments
     K = jax.hessian(e)(jnp.zeros((segments, 6))).reshape(n, n)

@@ -31,6 +31,18 @@ from .errors import ConvergenceError, SceneError
 from .io.scene_file import with_solver
 from .simulation import simulate
 
+# The families `--families` names, and how tables and plots call them.
+FAMILIES = {
+    "N": "N (RK4)",
+    "dt": "dt",
+    "alpha": "alpha",
+    "tol": "Newton tol",
+    "euler": "Euler",
+    "kirchhoff": "Kirchhoff",
+    "lumped": "lumped",
+}
+THESIS = "thesis"  # the scene's own setting
+
 
 @dataclasses.dataclass
 class Setting:
@@ -39,12 +51,14 @@ class Setting:
     solver: dict  # with_solver overrides
     kirchhoff: bool = False
     lumped_segments: int | None = None
-    thesis: bool = False
+
+    @property
+    def thesis(self) -> bool:
+        return self.family == THESIS
 
 
 def _nodes_ladder(n0: int) -> list[int]:
-    out = sorted({max(4, int(round(n0 / f))) for f in (16, 8, 4, 2, 1)})
-    return out
+    return sorted({max(4, int(round(n0 / f))) for f in (16, 8, 4, 2, 1)})
 
 
 def settings(scene, quick: bool = False) -> list[Setting]:
@@ -53,23 +67,24 @@ def settings(scene, quick: bool = False) -> list[Setting]:
     s = scene.solver
     n0, dt0, a0, tol0 = s.nodes, float(s.dt), float(s.alpha), s.newton.tol
     nm = min(n0, 20)  # the families other than N run at a moderate N
-    out = [Setting("thesis", f"scene's own: N {n0}, dt {dt0:g}, alpha {a0:g}", {}, thesis=True)]
+    F = FAMILIES
+    out = [Setting(THESIS, f"scene's own: N {n0}, dt {dt0:g}, alpha {a0:g}", {})]
     nodes = _nodes_ladder(n0)[:2] if quick else _nodes_ladder(n0)
-    out += [Setting("N (RK4)", f"N {n}", {"nodes": n}) for n in nodes if n != n0]
+    out += [Setting(F["N"], f"N {n}", {"nodes": n}) for n in nodes if n != n0]
     for f in (2.0, 0.5) if quick else (2.0, 0.5, 0.25):
-        out.append(Setting("dt", f"dt {dt0 * f:g}", {"nodes": nm, "dt": dt0 * f}))
+        out.append(Setting(F["dt"], f"dt {dt0 * f:g}", {"nodes": nm, "dt": dt0 * f}))
     for a in (-0.5, 0.0) if quick else (-0.5, -0.3, -0.2, 0.0):
         if a != a0:
-            out.append(Setting("alpha", f"alpha {a:g}", {"nodes": nm, "alpha": a}))
+            out.append(Setting(F["alpha"], f"alpha {a:g}", {"nodes": nm, "alpha": a}))
     for tol in (1e-6,) if quick else (1e-6, 1e-8, 1e-12):
         if tol != tol0:
-            out.append(Setting("Newton tol", f"tol {tol:g}", {"nodes": nm, "tol": tol}))
+            out.append(Setting(F["tol"], f"tol {tol:g}", {"nodes": nm, "tol": tol}))
     for n in (nm,) if quick else (nm, 2 * nm, 4 * nm):
-        out.append(Setting("Euler", f"Euler N {n}", {"nodes": n, "integrator": "euler"}))
-    out.append(Setting("Kirchhoff", f"Kirchhoff N {nm}", {"nodes": nm}, kirchhoff=True))
+        out.append(Setting(F["euler"], f"Euler N {n}", {"nodes": n, "integrator": "euler"}))
+    out.append(Setting(F["kirchhoff"], f"Kirchhoff N {nm}", {"nodes": nm}, kirchhoff=True))
     if scene.robot == "rod":
         for m in (4, 8) if quick else (4, 8, 16, 32):
-            out.append(Setting("lumped", f"lumped {m} segments", {}, lumped_segments=m))
+            out.append(Setting(F["lumped"], f"lumped {m} segments", {}, lumped_segments=m))
     return out
 
 
@@ -148,7 +163,6 @@ def _timed(fn):
 def run_setting(scene, st: Setting, ref: Reference) -> dict:
     """One row: the setting, its error against ``ref``, wall seconds per simulated second and compile seconds."""
     duration = float(scene.solver.duration)
-    row = dict(family=st.family, label=st.label, thesis=st.thesis)
     if st.lumped_segments is not None:
         from .lumped import simulate_lumped
 
@@ -165,7 +179,8 @@ def run_setting(scene, st: Setting, ref: Reference) -> dict:
         tr = simulate(sc, timings=tm)
         run_s = tm["run_s"]
         dt, nodes, its = float(sc.solver.dt), sc.solver.nodes, float(np.mean(tr.iterations))
-    row.update(
+    return _row(
+        st,
         nodes=nodes,
         dt_s=dt,
         alpha=float(st.solver.get("alpha", scene.solver.alpha)) if st.lumped_segments is None else math.nan,
@@ -174,7 +189,10 @@ def run_setting(scene, st: Setting, ref: Reference) -> dict:
         compile_s=compile_s,
         newton_iterations=its,
     )
-    return row
+
+
+def _row(st: Setting, **figures) -> dict:
+    return dict(family=st.family, label=st.label, thesis=st.thesis, **figures)
 
 
 def pareto_front(rows) -> np.ndarray:
@@ -194,14 +212,10 @@ def cheapest(rows, target: float) -> dict | None:
     return min(ok, key=lambda r: r["wall_per_sim_s"]) if ok else None
 
 
-FAMILIES = ("N", "dt", "alpha", "tol", "euler", "kirchhoff", "lumped")
-_FAMILY_NAMES = dict(zip(FAMILIES, ("N (RK4)", "dt", "alpha", "Newton tol", "Euler", "Kirchhoff", "lumped"), strict=True))
-
-
 def run_pareto(
     scene, *, quick: bool = False, families=None, reference_nodes: int | None = None, progress=print
 ) -> tuple[list, Reference]:
-    """The settings of ``scene`` (all families, or those named in ``families``, see `FAMILIES`;
+    """The settings of ``scene`` (all families, or those named in ``families``, keys of `FAMILIES`;
     the scene's own setting always) against its Richardson reference: (rows, reference)."""
     todo = settings(scene, quick)
     if families is not None:
@@ -210,9 +224,9 @@ def run_pareto(
             raise SceneError(
                 f"unknown famil{'ies' if len(unknown) > 1 else 'y'} {', '.join(sorted(unknown))}; choose from {', '.join(FAMILIES)}"
             )
-        keep = {_FAMILY_NAMES[f] for f in families}
+        keep = {FAMILIES[f] for f in families}
         todo = [s for s in todo if s.thesis or s.family in keep]
-    dts = [float(with_solver(scene, **s.solver).solver.dt) for s in todo if s.lumped_segments is None]
+    dts = [s.solver.get("dt", float(scene.solver.dt)) for s in todo if s.lumped_segments is None]
     n_ref = reference_nodes or 2 * max(s.solver.get("nodes", scene.solver.nodes) for s in todo if s.lumped_segments is None)
     ref = reference(scene, dts, n_ref, progress)
     rows = []
@@ -222,9 +236,8 @@ def run_pareto(
             rows.append(run_setting(scene, st, ref))
         except ConvergenceError as e:  # kept in the table: a setting that fails is a finding
             progress(f"  did not converge: {e}")
-            rows.append(dict(family=st.family, label=st.label, thesis=st.thesis, nodes=st.solver.get("nodes", math.nan),
-                             dt_s=math.nan, alpha=math.nan, error=math.inf, wall_per_sim_s=math.inf, compile_s=math.nan,
-                             newton_iterations=math.nan))  # fmt: skip
+            rows.append(_row(st, nodes=st.solver.get("nodes", math.nan), dt_s=math.nan, alpha=math.nan, error=math.inf,
+                             wall_per_sim_s=math.inf, compile_s=math.nan, newton_iterations=math.nan))  # fmt: skip
     for r, f in zip(rows, pareto_front(rows), strict=True):
         r["pareto"] = bool(f)
     return rows, ref

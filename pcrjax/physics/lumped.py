@@ -68,6 +68,17 @@ def qlog(q):
     return scale * q[1:]
 
 
+def normalised(q):
+    """Quaternions (..., 4) scaled to unit length."""
+    return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def displaced(p, q, d):
+    """Node positions (N, 3) moved by ``d[:, :3]`` and quaternions (N, 4) turned by the small
+    body-axis rotations ``d[:, 3:]``: the coordinates forces, Jacobians and modes are taken in."""
+    return p + d[:, :3], normalised(jax.vmap(qmul)(q, jax.vmap(qexp)(d[:, 3:])))
+
+
 def _segment_strains(pa, qa, pb, qb, l):
     qa = qa / jnp.linalg.norm(qa)
     qb = qb / jnp.linalg.norm(qb)
@@ -141,32 +152,25 @@ class Chain(eqx.Module):
         du = u if self.ustar is None else u - self.ustar
         return 0.5 * self.l * (jnp.sum(dv * dv * self.kse) + jnp.sum(du * du * self.kbt))
 
-    def kinetic(self, q, v, w):
+    def kinetic(self, v, w):
         """Kinetic energy (J) of node velocities (N, 3) and body angular velocities (N, 3)."""
         return 0.5 * (jnp.sum(self.mass[:, None] * v * v) + jnp.sum(self.inertia * w * w))
 
-    def _perturbed_strains(self, p, q, dp, dtheta):
-        return self.strains(p + dp, jax.vmap(qmul)(q, jax.vmap(qexp)(dtheta)))
-
     def elastic_forces(self, p, q):
         """$\\partial E/\\partial p_i$ (N, 3) and $\\partial E/\\partial \\theta_i$ (N, 3, body axes)."""
-        z = jnp.zeros_like(p)
-
-        def e(dp, dth):
-            return self.energy(p + dp, jax.vmap(qmul)(q, jax.vmap(qexp)(dth)))
-
-        return jax.grad(e, argnums=(0, 1))(z, z)
+        g = jax.grad(lambda d: self.energy(*displaced(p, q, d)))(jnp.zeros((p.shape[0], 6)))
+        return g[:, :3], g[:, 3:]
 
     def damping_forces(self, p, q, v, w):
         """$\\partial D/\\partial v_i$ and $\\partial D/\\partial \\omega_i$ of the dissipation
         $D = \\tfrac l2 \\sum (\\dot v^T B_{se} \\dot v + \\dot u^T B_{bt} \\dot u)$."""
-        z = jnp.zeros_like(p)
 
-        def dissipation(vel, omega):
-            _, (vd, ud) = jax.jvp(lambda a, b: self._perturbed_strains(p, q, a, b), (z, z), (vel, omega))
+        def dissipation(rates):
+            _, (vd, ud) = jax.jvp(lambda d: self.strains(*displaced(p, q, d)), (jnp.zeros_like(rates),), (rates,))
             return 0.5 * self.l * (jnp.sum(vd * vd * self.bse) + jnp.sum(ud * ud * self.bbt))
 
-        return jax.grad(dissipation, argnums=(0, 1))(v, w)
+        g = jax.grad(dissipation)(jnp.concatenate([v, w], axis=1))
+        return g[:, :3], g[:, 3:]
 
     def accelerations(self, p, q, v, w, force, moment_body):
         """Node accelerations (N, 3) and body angular accelerations (N, 3) under the external
