@@ -8,12 +8,13 @@ Layout: ``physics/`` (rotations, rod, rigid platform), ``numerics/`` (BDF-alpha,
 integration, shooting, Newton), ``robots/`` (legs, ends, actuation, the one assembly, statics and
 dynamics), ``io/`` (scene files, tables, outputs), `simulation` (the public solves), `sweeps`
 (batched parameter sweeps), `lumped` (the lumped model of thesis 3.1, with diffrax), `pareto`
-(the cost of accuracy), `cli`,
+(the cost of accuracy), `executables` (compiled code against the memory-map cap), `cli`,
 ``bench/``.
 """
 
 from .config import enable_compilation_cache
 from .errors import ConvergenceError, SceneError
+from .executables import release_compiled
 from .io.scene_file import load_scene, scene_from_dict, shipped_scenes, with_solver
 from .numerics import results
 from .robots.scene import Scene
@@ -32,6 +33,7 @@ __all__ = [
     "enable_compilation_cache",
     "inverse_dynamics",
     "load_scene",
+    "release_compiled",
     "results",
     "rollout",
     "scene_from_dict",

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import executables
 from .errors import ConvergenceError, SceneError
 from .numerics import results
 from .physics.rotations import rotation_vector
@@ -103,6 +104,8 @@ def _static(scene):
 def solve_static(scene, *, throw: bool = True) -> StaticResult:
     """Static equilibrium under the initial loads and actuator values (t = 0). Raises
     `ConvergenceError` if the solve fails (when called outside a trace and ``throw``)."""
+    if not any(_is_traced(leaf) for leaf in jax.tree.leaves(scene)):
+        executables.make_room()
     res = _static(scene)
     if throw and not _is_traced(res.residual_norm) and not bool(res.converged):
         raise static_failure(scene, res)
@@ -245,6 +248,11 @@ def _advance(scene, state, i0, count: int, path=None):
 _COMPILED: dict = {}
 
 
+def release_compiled():
+    """Forget the compiled chunks (see `executables.make_room`)."""
+    _COMPILED.clear()
+
+
 def _signature(tree):
     """Hashable abstract signature of a pytree: structure, array shapes and dtypes, other leaves' values."""
     leaves, treedef = jax.tree.flatten(tree)
@@ -262,6 +270,7 @@ def _compiled_advance(scene, state, chunk: int, path=None):
     except TypeError:  # an unhashable static leaf: compile without caching
         return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     if key not in _COMPILED:
+        executables.make_room()
         _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     return _COMPILED[key]
 

@@ -4,9 +4,21 @@ import sys
 sys.path.insert(0, os.path.dirname(__file__))
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 import pcrjax  # noqa: E402
+from pcrjax import executables  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "allow")
 pcrjax.enable_compilation_cache()
+
+
+@pytest.fixture(autouse=True)
+def _headroom_for_executables():
+    """A worker runs many tests in one process: release compiled code before it nears the kernel's
+    cap on memory mappings (see `pcrjax.executables`), which would crash the worker."""
+    yield
+    used, cap = executables.map_count(), executables.map_limit()
+    if used is not None and cap is not None and used > 0.4 * cap:
+        executables.release_compiled()
