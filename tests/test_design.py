@@ -48,10 +48,10 @@ def test_vibration_gradient_matches_central_differences():
 
     rng = np.random.default_rng(7)
     c = jnp.asarray(rng.normal(size=6) * 1e-7)
-    g = np.asarray(jax.jit(jax.grad(f))(c))
-    fj = jax.jit(f)
+    vg = jax.jit(jax.value_and_grad(f))  # one program: the differences evaluate its value half
+    g = np.asarray(vg(c)[1])
     h = 1e-9
-    fd = np.array([(float(fj(c.at[i].add(h))) - float(fj(c.at[i].add(-h)))) / (2 * h) for i in range(6)])
+    fd = np.array([(float(vg(c.at[i].add(h))[0]) - float(vg(c.at[i].add(-h))[0])) / (2 * h) for i in range(6)])
     print("gradient", g, "central differences", fd)
     assert np.abs(g - fd).max() < 1e-6 * np.abs(fd).max()
 

@@ -74,7 +74,10 @@ def _circle(duration):
     return PosePath.from_samples(t[keep], v[keep])
 
 
-@pytest.mark.parametrize("duration,nodes", [(0.15, 10), pytest.param(2.419, 50, marks=pytest.mark.slow)])
+# The default run makes these same checks in notebooks/inverse_and_design.ipynb (N 10, 0.3 s of the
+# circle, quick mode): here both lengths are slow, to compile the circle's programs once per run.
+@pytest.mark.slow
+@pytest.mark.parametrize("duration,nodes", [(0.15, 10), (2.419, 50)])
 def test_thesis_circle_round_trip(duration, nodes):
     """Thesis Fig. 4.10-4.11 (section 4.3.2: 1.76 % path error there): the inverse solution
     replayed forward at the same step and grid stays on the path to 1e-6 of the motion."""
