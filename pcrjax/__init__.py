@@ -7,7 +7,8 @@ persistent compilation cache. Importing pcrjax changes no JAX setting.
 Layout: ``physics/`` (rotations, rod, rigid platform), ``numerics/`` (BDF-alpha, spatial
 integration, shooting, Newton), ``robots/`` (legs, ends, actuation, the one assembly, statics and
 dynamics), ``io/`` (scene files, tables, outputs), `simulation` (the public solves), `sweeps`
-(batched parameter sweeps), `lumped` (the lumped model of thesis 3.1, with diffrax), `pareto`
+(batched parameter sweeps; `distributed`: on a Dask cluster), `numerical_damping` (BDF-alpha's
+damping against dt, alpha and N), `lumped` (the lumped model of thesis 3.1, with diffrax), `pareto`
 (the cost of accuracy), `executables` (compiled code against the memory-map cap), `cli`,
 ``bench/``.
 """

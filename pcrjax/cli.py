@@ -121,7 +121,16 @@ def cmd_sweep(args) -> int:
             raise SceneError(f"--vary {key.strip()}: given twice")
         vary[key.strip()] = spec.strip()
     out = _out_dir(args.out)
-    sw = sweep(data, vary, samples=args.samples, seed=args.seed, batch=args.batch, progress=not args.quiet, source=str(path))
+    sw = sweep(
+        data,
+        vary,
+        samples=args.samples,
+        seed=args.seed,
+        batch=args.batch,
+        progress=not args.quiet,
+        source=str(path),
+        cluster=args.cluster,
+    )
     failed = write(out, sw)
     if not args.quiet:
         t = sw.timings
@@ -411,6 +420,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, help="a Latin hypercube of this many members over the --vary ranges instead of a grid")
     p.add_argument("--seed", type=int, default=0, help="seed of the Latin hypercube (default 0)")
     p.add_argument("--batch", type=int, default=64, help="members per compiled program (default 64)")
+    p.add_argument(
+        "--cluster",
+        help="run the batches on a Dask cluster: 'local' (worker processes on this machine, one per core), 'local:W' "
+        "(W workers), or a scheduler address such as tcp://host:8786 (default: in this process)",
+    )
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--quiet", action="store_true", help="no progress lines or closing line")
     _add_solver_overrides(p)

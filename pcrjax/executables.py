@@ -40,9 +40,10 @@ def map_limit() -> int | None:
 
 def release_compiled():
     """Drop every compiled executable pcrjax and JAX hold in this process."""
-    from . import simulation
+    from . import simulation, sweeps
 
     simulation.release_compiled()
+    sweeps.release_compiled()
     jax.clear_caches()
     gc.collect()
 

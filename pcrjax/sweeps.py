@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import executables
 from .errors import SceneError
 from .io.scene_file import read_toml, scene_from_dict, scene_path
 from .numerics import results
@@ -239,6 +240,60 @@ def _run_static(scene):
     )  # fmt: skip
 
 
+_PROGRAMS: dict = {}  # (structure signature, batch size) -> compiled jit(vmap(run)), per process
+
+
+def shard_members(tree):
+    """``tree``'s leading (members) axis split across the local devices (unchanged with one); the
+    members must be a multiple of the devices."""
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return tree
+    mesh = jax.sharding.Mesh(np.array(devices), ("members",))
+    return jax.device_put(tree, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("members")))
+
+
+def run_members(scenes: list, size: int) -> tuple[list, float, float]:
+    """Run ``scenes`` (one compiled structure, at most ``size``) as one batched program padded to
+    ``size`` members: (per-member outputs as numpy dicts, compile s, run s). The program is
+    compiled once per process for each structure and size. With several local devices (GPUs, or
+    CPU devices from ``XLA_FLAGS=--xla_force_host_platform_device_count=K``) the members axis is
+    sharded across them (`jax.sharding`; the batch is padded to a multiple of their count)."""
+    devices = jax.local_devices()
+    size = -(-size // len(devices)) * len(devices)
+    padded = scenes + [scenes[-1]] * (size - len(scenes))
+    stacked = shard_members(jax.tree.map(lambda *a: jnp.stack(a), *padded))
+    key = (_signature(stacked), size, len(devices))
+    t0 = time.perf_counter()
+    compile_s = 0.0
+    if key not in _PROGRAMS:
+        executables.make_room()
+        run = _run_dynamic if scenes[0].effects.inertia else _run_static
+        _PROGRAMS[key] = jax.jit(jax.vmap(run)).lower(stacked).compile()
+        compile_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+    res = jax.tree.map(np.asarray, jax.block_until_ready(_PROGRAMS[key](stacked)))
+    return [{k: v[j] for k, v in res.items()} for j in range(len(scenes))], compile_s, time.perf_counter() - t0
+
+
+def batches(scenes: list, batch: int) -> list[tuple[list, int]]:
+    """(member indices, program size) per batch: members of one compiled structure together,
+    ``batch`` at a time (a structure's last batch is padded to its size)."""
+    groups: dict = {}
+    for m, s in enumerate(scenes):
+        groups.setdefault(_signature(s), []).append(m)
+    jobs = []
+    for members in groups.values():
+        size = min(int(batch), len(members))
+        jobs += [(members[i : i + size], size) for i in range(0, len(members), size)]
+    return jobs
+
+
+def release_compiled():
+    """Forget the compiled sweep programs (see `executables.make_room`)."""
+    _PROGRAMS.clear()
+
+
 def sweep(
     scene,
     vary: dict,
@@ -248,6 +303,7 @@ def sweep(
     batch: int = 64,
     progress: bool | Callable = False,
     source: str = "<scene>",
+    cluster: str | None = None,
 ) -> Sweep:
     """Run variants of ``scene`` (a scene file, a shipped scene's name, or a parsed scene dict).
 
@@ -256,7 +312,10 @@ def sweep(
     hypercube of that many points over each key's range (``seed`` fixes it). ``batch``: members
     per compiled program (memory grows with it). ``progress``: True prints a line per batch to
     stderr, or a callable ``f(done_members, total_members)``. ``source``: the file a scene dict
-    came from (names it in errors; relative files in it are read from its folder).
+    came from (names it in errors; relative files in it are read from its folder). ``cluster``:
+    None runs the batches in this process; ``"local"`` or ``"local:W"`` on a Dask cluster of W
+    worker processes on this machine (default: one per core); an address
+    (``"tcp://host:8786"``) on that Dask scheduler's workers (`pcrjax.distributed`).
     """
     if isinstance(scene, dict):
         data = scene
@@ -269,37 +328,41 @@ def sweep(
         )
     if int(batch) < 1:
         raise SceneError("batch must be at least 1")
+    if cluster is not None:
+        from . import distributed
+
+        distributed.parse(cluster)  # a malformed --cluster is reported before any work
     keys, values, grid_shape = _members(vary, samples, seed)
     scenes = _scenes(data, source, keys, values)
     dynamic = scenes[0].effects.inertia
-    run = _run_dynamic if dynamic else _run_static
-    groups: dict = {}
-    for m, s in enumerate(scenes):
-        groups.setdefault(_signature(s), []).append(m)
+    jobs = batches(scenes, batch)
+    timings = {
+        "compile_s": 0.0,
+        "run_s": 0.0,
+        "programs": len({_signature(scenes[ms[0]]) for ms, _ in jobs}),
+        "batch": int(batch),
+    }
     outs: list = [None] * len(scenes)
-    timings = {"compile_s": 0.0, "run_s": 0.0, "programs": len(groups), "batch": int(batch)}
     done = 0
-    for members in groups.values():
-        size = min(int(batch), len(members))
-        program = jax.jit(jax.vmap(run))
-        for start in range(0, len(members), size):
-            chunk = members[start : start + size]
-            padded = chunk + [chunk[-1]] * (size - len(chunk))  # one compiled size per group
-            stacked = jax.tree.map(lambda *a: jnp.stack(a), *[scenes[m] for m in padded])
-            t0 = time.perf_counter()
-            if start == 0:
-                compiled = program.lower(stacked).compile()
-                timings["compile_s"] += time.perf_counter() - t0
-                t0 = time.perf_counter()
-            res = jax.tree.map(np.asarray, jax.block_until_ready(compiled(stacked)))
-            timings["run_s"] += time.perf_counter() - t0
-            for j, m in enumerate(chunk):
-                outs[m] = {k: v[j] for k, v in res.items()}
-            done += len(chunk)
-            if progress is True:
-                print(f"sweep: {done}/{len(scenes)} members ({time.perf_counter() - t0:.1f} s for this batch)", file=sys.stderr)
-            elif callable(progress):
-                progress(done, len(scenes))
+
+    def collect(members, result):
+        nonlocal done
+        member_outs, compile_s, run_s = result
+        timings["compile_s"] += compile_s
+        timings["run_s"] += run_s
+        for m, o in zip(members, member_outs, strict=True):
+            outs[m] = o
+        done += len(members)
+        if progress is True:
+            print(f"sweep: {done}/{len(scenes)} members ({compile_s + run_s:.1f} s for this batch)", file=sys.stderr)
+        elif callable(progress):
+            progress(done, len(scenes))
+
+    if cluster is None:
+        for members, size in jobs:
+            collect(members, run_members([scenes[m] for m in members], size))
+    else:
+        timings["cluster"] = distributed.run_jobs(cluster, data, source, keys, values, jobs, collect)
     name = scenes[0].name
     if not dynamic:
         return Sweep(name, keys, values, _static_outputs(outs), grid_shape=grid_shape, timings=timings)

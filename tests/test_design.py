@@ -37,6 +37,10 @@ def test_correction_basis_is_smooth_and_vanishes_at_the_ends():
     assert np.abs(design.correction_basis(np.array([-0.1, 1.1]), 1.0, 4)).max() == 0.0
 
 
+# Slow (3-5 min cold): reverse mode through a rollout is checked against central differences in
+# the default run by quickstart.ipynb and test_gradients (checkpointed); design's LM path (forward
+# mode) by test_cli_design_small_move and inverse_and_design.ipynb reaching their quieter moves.
+@pytest.mark.slow
 def test_vibration_gradient_matches_central_differences():
     sc = _triskele(nodes=5, dt=5e-4, tol=1e-13)
     move, scene = design.plan_move(sc, [3e-6, 1e-6, 0.0], [0.0, 0.0, 1e-4], 5e-3, 5e-3, count=2)

@@ -79,7 +79,8 @@ def _dyn_scene(damping):
 
 
 # 7: checkpointed chunks, the last one partial. Plain reverse mode through a rollout is also in the
-# default run (design's gradient test, the bench's gradient cost); here it is slow to save a compile.
+# default run (quickstart.ipynb against a central difference, the bench's gradient cost); here it is
+# slow to save a compile.
 @pytest.mark.parametrize("checkpoint", [7, pytest.param(None, marks=pytest.mark.slow)])
 def test_rollout_gradient_after_50_steps_length_E_tau(checkpoint):
     scene = _dyn_scene({"tau": 2e-4})

@@ -18,7 +18,15 @@ NOTEBOOKS = sorted(FOLDER.glob("*.ipynb"))
 
 def test_notebooks_exist():
     names = {p.stem for p in NOTEBOOKS}
-    assert {"quickstart", "cantilever", "stewart_gough", "triskele", "identification", "inverse_and_design"} <= names, names
+    assert {
+        "quickstart",
+        "cantilever",
+        "stewart_gough",
+        "triskele",
+        "identification",
+        "inverse_and_design",
+        "sweeps_and_accuracy",
+    } <= names, names
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)

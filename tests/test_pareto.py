@@ -44,15 +44,15 @@ def test_front_and_cheapest_on_hand_made_rows():
 def test_pareto_command_on_a_small_scene(tmp_path, capsys):
     out = tmp_path / "out"
     code = main(
-        ["pareto", _write(tmp_path, SCENE), "--quick", "--families", "dt,lumped", "--target-error", "0.05", "--out", str(out)]
+        ["pareto", _write(tmp_path, SCENE), "--quick", "--families", "lumped", "--target-error", "0.05", "--out", str(out)]
     )
     assert code == 0
     rows = list(csv.DictReader(open(out / "pareto.csv")))
     fams = [r["family"] for r in rows]
-    assert fams.count("thesis") == 1 and fams.count("dt") == 2 and fams.count("lumped") == 2, fams
+    # the lumped family only (sweeps_and_accuracy.ipynb runs the dt family in the default run)
+    assert fams.count("thesis") == 1 and fams.count("lumped") == 2 and len(fams) == 3, fams
     err = {r["label"]: float(r["error"]) for r in rows}
     assert all(np.isfinite(e) and e > 0 for e in err.values()), err
-    assert err["dt 0.01"] > err["dt 0.0025"]  # a larger step is further from the reference
     assert err["lumped 8 segments"] < err["lumped 4 segments"]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["front"] and summary["cheapest_meeting_target"]["error"] <= 0.05

@@ -4,6 +4,9 @@ and bad input gets one line with exit 2."""
 import copy
 import csv
 import json
+import os
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -100,3 +103,53 @@ def test_cli_sweep_bad_input_one_line_exit_2(tmp_path, capsys, case):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
     assert not (out / "sweep.csv").exists()
+
+
+def test_sweep_on_a_local_dask_cluster_equals_the_in_process_sweep(tmp_path):
+    """Six static members in batches of three on two Dask worker processes: the same table,
+    to the last digit, as in this process (the workers run the same programs on the same inputs)."""
+    pytest.importorskip("dask.distributed")
+    scene = _write(tmp_path, GOOD.replace("[solver]", "[effects]\ninertia = false\n[solver]"))
+    argv = ["sweep", scene, "--vary", "tip.force[2]=-2:-0.5:3", "--vary", "rod.length=0.3,0.4", "--batch", "3", "--quiet"]
+    assert main(argv + ["--out", str(tmp_path / "here")]) == 0
+    assert main(argv + ["--cluster", "local:2", "--out", str(tmp_path / "dask")]) == 0
+    here, there = ((tmp_path / d / "sweep.csv").read_text() for d in ("here", "dask"))
+    assert here == there and len(here.splitlines()) == 7
+    ran = json.loads((tmp_path / "dask" / "summary.json").read_text())["cluster"]
+    assert ran["kind"] == "local" and ran["workers"] == 2
+
+
+@pytest.mark.parametrize("cluster", ["remote", "local:0"])
+def test_cli_sweep_bad_cluster_one_line_exit_2(tmp_path, capsys, cluster):
+    argv = ["sweep", _write(tmp_path, GOOD), "--vary", "rod.length=0.3,0.4", "--cluster", cluster, "--out", str(tmp_path / "o")]
+    assert main(argv + ["--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cluster" in err[0], err
+
+
+SHARDED = """
+import json, sys
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import pcrjax
+from pcrjax.sweeps import sweep
+pcrjax.enable_compilation_cache()
+assert len(jax.local_devices()) == 2, jax.local_devices()
+sw = sweep(json.load(open(sys.argv[1])), {"tip.force[2]": [-2.0, -1.0, -0.5]}, batch=3)
+np.save(sys.argv[2], np.stack([sw.outputs[k] for k in ("x_m", "z_m", "ry_rad", "converged")]))
+"""
+
+
+def test_members_sharded_across_two_cpu_devices_equal_one_device(tmp_path):
+    """The members axis split across two (forced host) CPU devices with `jax.sharding`, the batch
+    of three padded to four: the same equilibria as on one device."""
+    data = rod_data(nodes=6, tol=1e-13, effects={"inertia": False})
+    (tmp_path / "scene.json").write_text(json.dumps(data))
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    cmd = [sys.executable, "-c", SHARDED, str(tmp_path / "scene.json"), str(tmp_path / "sharded.npy")]
+    subprocess.run(cmd, env=env, check=True, timeout=600)
+    sharded = np.load(tmp_path / "sharded.npy")
+    sw = sweep(data, {"tip.force[2]": [-2.0, -1.0, -0.5]}, batch=3)
+    here = np.stack([sw.outputs[k] for k in ("x_m", "z_m", "ry_rad", "converged")])
+    assert np.all(here[3] == 1) and np.all(sharded[3] == 1)
+    np.testing.assert_allclose(sharded, here, rtol=1e-12, atol=0)

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..io.scene_file import scene_from_dict, with_solver
 from ..simulation import rollout
+from ..sweeps import shard_members
 from .cases import _cantilever_dicts
 
 
@@ -58,18 +59,23 @@ def bench_batch(sizes, nodes: int = 20, steps: int = 200, loop_members: int = 16
     )
     print(f"{'batch':>6}{'compile s':>11}{'run s':>9}{'member-steps/s':>16}{'vs loop':>9}{'max diff':>11}{'Newton it/step':>16}")
     rows = []
+    devices = len(jax.local_devices())
+    if devices > 1:
+        print(f"each batch split across {devices} local devices (jax.sharding); the loop runs on one")
     for size in sizes:
         ts = taus(size)
+        if size % devices == 0:
+            ts = shard_members(ts)
         t0 = time.perf_counter()
         batched = jax.jit(jax.vmap(run)).lower(ts).compile()
         compile_s = time.perf_counter() - t0
         (pos, its), run_s = _timed(batched, ts)
-        ref = [single(t)[0] for t in ts[: min(size, 8)]]
+        ref = [single(t)[0] for t in taus(size)[: min(size, 8)]]
         scale = max(float(np.max(np.abs(np.asarray(r) - np.asarray(r)[0]))) for r in ref)
         diff = max(float(np.max(np.abs(np.asarray(pos[i]) - np.asarray(r)))) for i, r in enumerate(ref)) / scale
         rate = size * steps / run_s
         row = dict(
-            batch=size, compile_s=compile_s, run_s=run_s, member_steps_per_s=rate, vs_loop=rate / loop_rate, max_rel_diff=diff,
+            batch=size, devices=devices if size % devices == 0 else 1, compile_s=compile_s, run_s=run_s, member_steps_per_s=rate, vs_loop=rate / loop_rate, max_rel_diff=diff,
             newton_iterations=float(np.mean(its)), single_compile_s=single_compile, loop_member_steps_per_s=loop_rate,
         )  # fmt: skip
         print(
