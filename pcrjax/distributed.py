@@ -68,7 +68,7 @@ def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect)
     except OSError as e:  # refused, unreachable, timed out
         if local is not None:
             local.close()
-        raise SceneError(f"cannot reach the Dask scheduler at {arg}: {e}") from None
+        raise SceneError(f"--cluster {cluster!r}: cannot start or reach the Dask cluster: {e}") from None
     try:
         workers = len(client.scheduler_info()["workers"])
         futures = {client.submit(_task, data, source, keys, values[members], size, pure=False): members for members, size in jobs}

@@ -4,12 +4,13 @@ scheme's alpha: -0.5 is the trapezoidal rule (no damping), 0 is BDF2 (the most; 
 Members: every (dt, alpha) pair at the scene's N, and every N at one (dt, alpha). Each member runs
 the same number of steps, so all members of one N share a compiled program and run as one batch
 (`sweeps.run_members`): the whole (dt, alpha) plane is one program. A member's damping ratio is
-the thesis's: the log decrement over the peaks of its end's displacement (delta = ln(X0/Xn)/n,
-here the slope fitted over all n + 1 peaks), and xi = delta / sqrt(4 pi^2 + delta^2) (eq. 4.1-4.2). Beside it, the scheme's own prediction
-(`bdf_alpha.amplification`) for a linear oscillator at the member's measured frequency, and the
-simulated first mode's own per-step factor by Prony's method, which the higher modes beating on
-the peaks do not bias (the log decrement's error is ~1e-3 in xi over a few periods). A large
-release is nonlinear: there the theory holds only roughly.
+the thesis's: the log decrement over the peaks of its end's displacement (delta = ln(X0/Xn)/n;
+here peak to trough, the slope fitted over all peaks), xi = delta / sqrt(4 pi^2 + delta^2)
+(eq. 4.1-4.2). Beside it, the scheme's own prediction (`bdf_alpha.amplification`) for a linear
+oscillator at the first frequency, and the simulated first mode's own per-step factor by Prony's
+method, which the higher modes beating on the peaks do not bias (they bias the log decrement by
+~5e-4 to 1e-3 in xi over a few periods). A large release is nonlinear: there the theory holds
+only roughly.
 """
 
 from __future__ import annotations
