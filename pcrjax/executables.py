@@ -48,17 +48,18 @@ def release_compiled():
     gc.collect()
 
 
-def make_room(share: float = 0.6) -> bool:
+def make_room(share: float = 0.6, warn: bool = True) -> bool:
     """Release compiled executables when the mappings in use pass ``share`` of the cap (with a
-    warning); True if it did. Call it outside traces only (between solves)."""
+    warning unless ``warn`` is False); True if it did. Call it outside traces only (between solves)."""
     used, cap = map_count(), map_limit()
     if used is None or cap is None or used < share * cap:
         return False
-    warnings.warn(
-        f"pcrjax: compiled code holds {used} of this process's {cap} memory mappings (vm.max_map_count); "
-        "releasing all compiled executables (they compile again, or load from the persistent cache, when next used)",
-        RuntimeWarning,
-        stacklevel=2,
-    )
+    if warn:
+        warnings.warn(
+            f"pcrjax: compiled code holds {used} of this process's {cap} memory mappings (vm.max_map_count); "
+            "releasing all compiled executables (they compile again, or load from the persistent cache, when next used)",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     release_compiled()
     return True

@@ -110,6 +110,23 @@ def step_root(t, p, frequency_hz: float, dt: float, alpha: float) -> complex:
     return zk ** (1 / k)
 
 
+def _member_figures(out, dt: float, alpha: float, frequency_hz: float | None) -> dict:
+    """One member's damping figures (NaN where its run did not converge)."""
+    if not bool(np.all(out["result"] == results.SUCCESSFUL)):
+        nan = float("nan")
+        return dict(dt=dt, alpha=alpha, frequency_hz=nan, damping_ratio=nan, prony_ratio=nan, theory_ratio=nan,
+                    step_decay=nan, theory_step_decay=nan, converged=False)  # fmt: skip
+    t, p = out["t"], out["position"]
+    root = step_root(t, p, dominant_frequency(t, p), dt, alpha)
+    # the theory at the true frequency when given, else at the first mode's own (from its root)
+    f = float(frequency_hz) if frequency_hz is not None else abs(np.angle(root)) / (2 * math.pi * dt)
+    theory = amplification(2 * math.pi * f * dt, alpha)
+    return dict(
+        dt=dt, alpha=alpha, frequency_hz=f, damping_ratio=damping_ratio(t, p), prony_ratio=root_ratio(root),
+        theory_ratio=root_ratio(theory), step_decay=abs(root), theory_step_decay=abs(theory), converged=True,
+    )  # fmt: skip
+
+
 def study(
     scene,
     dts,
@@ -159,20 +176,7 @@ def study(
         wall = (time.perf_counter() - t0) / len(chunk)
         for m, o in zip(chunk, outs, strict=True):
             n, d, a = members[m]
-            ok = bool(np.all(o["result"] == results.SUCCESSFUL))
-            f = dominant_frequency(o["t"], o["position"]) if ok else float("nan")
-            root = step_root(o["t"], o["position"], f, d, a) if ok else complex("nan")
-            if ok and frequency_hz is None:  # the first mode's frequency from its own root
-                f = abs(np.angle(root)) / (2 * math.pi * d)
-            elif ok:
-                f = float(frequency_hz)
-            theory = amplification(2 * math.pi * f * d, a) if ok else complex("nan")
-            rows[m] = dict(
-                nodes=n, dt=d, alpha=a, duration_s=steps * d, frequency_hz=f,
-                damping_ratio=damping_ratio(o["t"], o["position"]) if ok else float("nan"),
-                prony_ratio=root_ratio(root) if ok else float("nan"), theory_ratio=root_ratio(theory) if ok else float("nan"),
-                step_decay=abs(root), theory_step_decay=abs(theory), converged=ok, wall_s=wall,
-            )  # fmt: skip
+            rows[m] = dict(nodes=n, duration_s=steps * d, wall_s=wall, **_member_figures(o, d, a, frequency_hz))
         done += len(chunk)
         if progress is not None:
             progress(done, len(members))

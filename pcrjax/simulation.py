@@ -105,11 +105,28 @@ def solve_static(scene, *, throw: bool = True) -> StaticResult:
     """Static equilibrium under the initial loads and actuator values (t = 0). Raises
     `ConvergenceError` if the solve fails (when called outside a trace and ``throw``)."""
     if not any(_is_traced(leaf) for leaf in jax.tree.leaves(scene)):
-        executables.make_room()
+        _before_new_static(scene)
     res = _static(scene)
     if throw and not _is_traced(res.residual_norm) and not bool(res.converged):
         raise static_failure(scene, res)
     return res
+
+
+_STATIC_SEEN: set = set()  # structures whose static solve this process has compiled
+
+
+def _before_new_static(scene):
+    """`executables.make_room` before a structure's first static solve only: counting the
+    process's memory mappings costs tens of ms in a large process, too much for every solve."""
+    try:
+        key = _signature(scene)
+        if key in _STATIC_SEEN:
+            return
+    except TypeError:  # an unhashable static leaf: always check
+        executables.make_room()
+        return
+    executables.make_room()
+    _STATIC_SEEN.add(key)
 
 
 def static_failure(scene, res) -> ConvergenceError:
@@ -249,8 +266,9 @@ _COMPILED: dict = {}
 
 
 def release_compiled():
-    """Forget the compiled chunks (see `executables.make_room`)."""
+    """Forget the compiled chunks and the static structures seen (see `executables.make_room`)."""
     _COMPILED.clear()
+    _STATIC_SEEN.clear()
 
 
 def _signature(tree):

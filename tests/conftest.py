@@ -19,6 +19,4 @@ def _headroom_for_executables():
     """A worker runs many tests in one process: release compiled code before it nears the kernel's
     cap on memory mappings (see `pcrjax.executables`), which would crash the worker."""
     yield
-    used, cap = executables.map_count(), executables.map_limit()
-    if used is not None and cap is not None and used > 0.4 * cap:
-        executables.release_compiled()
+    executables.make_room(0.4, warn=False)
