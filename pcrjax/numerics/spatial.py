@@ -83,7 +83,11 @@ def _scan(F, state0, rods, segment_starts, restarts, return_stages, collect=True
         out = (y_in, y) + ((stages,) if return_stages and stages is not None else ())
         return y_next, out if collect else None
 
-    return jax.lax.scan(body, state0, xs, unroll=rods.unroll)
+    # Reverse mode recomputes each node step from its carried state (`jax.checkpoint`) instead of
+    # storing every intermediate of the right-hand side: a linearised RK4 node step saves some 600
+    # small arrays, each written and read by a kernel of its own, which made the gradient's
+    # program several times larger than the forward one. Forward runs are unchanged.
+    return jax.lax.scan(jax.checkpoint(body, prevent_cse=False), state0, xs, unroll=rods.unroll)
 
 
 def _per_leg(fn, n: int):
