@@ -130,6 +130,7 @@ def cmd_sweep(args) -> int:
         progress=not args.quiet,
         source=str(path),
         cluster=args.cluster,
+        memory=args.memory,
     )
     failed = write(out, sw)
     if not args.quiet:
@@ -137,7 +138,7 @@ def cmd_sweep(args) -> int:
         which = f" (members {', '.join(map(str, failed[:10]))}{' ...' if len(failed) > 10 else ''})" if failed else ""
         print(
             f"{sw.scene}: {len(sw.values)} members in {t['run_s']:.1f} s after {t['compile_s']:.1f} s compile "
-            f"({t['programs']} program(s), batch {t['batch']}); {len(failed)} did not converge{which}; wrote {out}/"
+            f"({t['programs']} program(s), batch {'/'.join(map(str, t['batch_sizes']))}); {len(failed)} did not converge{which}; wrote {out}/"
         )
     return 0
 
@@ -420,6 +421,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, help="a Latin hypercube of this many members over the --vary ranges instead of a grid")
     p.add_argument("--seed", type=int, default=0, help="seed of the Latin hypercube (default 0)")
     p.add_argument("--batch", type=int, default=64, help="members per compiled program (default 64)")
+    p.add_argument(
+        "--memory",
+        help="the most one batched program may hold, e.g. 500MB or 2GiB; a larger batch runs as smaller ones "
+        "(default: half of the memory available when the sweep starts)",
+    )
     p.add_argument(
         "--cluster",
         help="run the batches on a Dask cluster: 'local' (worker processes on this machine, one per core), 'local:W' "

@@ -36,17 +36,19 @@ def parse(cluster: str) -> tuple[str, object]:
     raise SceneError(f"--cluster {cluster!r}: 'local', 'local:W' or a Dask scheduler address such as tcp://host:8786")
 
 
-def _task(data, source, keys, rows, size):
-    """On a worker: build the members' scenes and run them as one batched program."""
+def _task(data, source, keys, rows, size, budget):
+    """On a worker: build the members' scenes and run them as one batched program (as smaller
+    ones if it needs more than ``budget`` bytes; None: half of the worker's available memory)."""
     from .config import configure
 
     configure()  # float64 and the compilation cache, in the worker's process
+    from .memory import default_budget
     from .sweeps import _scenes, run_members
 
-    return run_members(_scenes(data, source, keys, rows), size)
+    return run_members(_scenes(data, source, keys, rows), size, default_budget() if budget is None else budget)
 
 
-def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect) -> dict:
+def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect, budget: int | None = None) -> dict:
     """Submit each job (members, batch size) as a task; ``collect(members, result)`` as each
     finishes (any order). Returns how it ran: kind, workers, wall seconds."""
     kind, arg = parse(cluster)
@@ -71,7 +73,9 @@ def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect)
         raise SceneError(f"--cluster {cluster!r}: cannot start or reach the Dask cluster: {e}") from None
     try:
         workers = len(client.scheduler_info()["workers"])
-        futures = {client.submit(_task, data, source, keys, values[members], size, pure=False): members for members, size in jobs}
+        futures = {
+            client.submit(_task, data, source, keys, values[members], size, budget, pure=False): members for members, size in jobs
+        }
         for fut in as_completed(futures):
             collect(futures[fut], fut.result())
     finally:

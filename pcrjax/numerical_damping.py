@@ -23,6 +23,7 @@ import numpy as np
 
 from .errors import SceneError
 from .io.scene_file import with_solver
+from .memory import default_budget
 from .numerics import results
 from .numerics.bdf_alpha import amplification
 from .sweeps import batches, dominant_frequency, run_members
@@ -160,7 +161,7 @@ def study(
     at = (float(s.dt), float(s.alpha)) if at is None else (float(at[0]), float(at[1]))
     if steps is None:
         probe = with_solver(scene, dt=min(dts), alpha=-0.5, duration=min(dts) * 400)
-        out, _, _ = run_members([probe], 1)
+        out, *_ = run_members([probe], 1)
         f = dominant_frequency(out[0]["t"], out[0]["position"])
         if not math.isfinite(f) or f <= 0:
             raise SceneError("the scene does not oscillate: no frequency to measure damping against")
@@ -172,7 +173,7 @@ def study(
     done = 0
     for chunk, size in batches(scenes, batch):
         t0 = time.perf_counter()
-        outs, _, _ = run_members([scenes[m] for m in chunk], size)
+        outs, *_ = run_members([scenes[m] for m in chunk], size, default_budget())
         wall = (time.perf_counter() - t0) / len(chunk)
         for m, o in zip(chunk, outs, strict=True):
             n, d, a = members[m]

@@ -34,6 +34,7 @@ import numpy as np
 from . import executables
 from .errors import SceneError
 from .io.scene_file import read_toml, scene_from_dict, scene_path
+from .memory import default_budget, parse_size, program_bytes
 from .numerics import results
 from .robots import statics
 from .simulation import _signature, rollout, static_result
@@ -253,27 +254,50 @@ def shard_members(tree):
     return jax.device_put(tree, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("members")))
 
 
-def run_members(scenes: list, size: int) -> tuple[list, float, float]:
+def _program(stacked, size: int, ndev: int, dynamic: bool):
+    """The compiled batched program for ``stacked`` members (compiled once per process for each
+    structure and size) and the seconds spent compiling it now."""
+    key = (_signature(stacked), size, ndev)
+    if key in _PROGRAMS:
+        return _PROGRAMS[key], 0.0
+    executables.make_room()
+    t0 = time.perf_counter()
+    _PROGRAMS[key] = jax.jit(jax.vmap(_run_dynamic if dynamic else _run_static)).lower(stacked).compile()
+    return _PROGRAMS[key], time.perf_counter() - t0
+
+
+def run_members(scenes: list, size: int, budget: int | None = None) -> tuple[list, float, float, dict]:
     """Run ``scenes`` (one compiled structure, at most ``size``) as one batched program padded to
-    ``size`` members: (per-member outputs as numpy dicts, compile s, run s). The program is
-    compiled once per process for each structure and size. With several local devices (GPUs, or
-    CPU devices from ``XLA_FLAGS=--xla_force_host_platform_device_count=K``) the members axis is
-    sharded across them (`jax.sharding`; the batch is padded to a multiple of their count)."""
-    devices = jax.local_devices()
-    size = -(-size // len(devices)) * len(devices)
+    ``size`` members: (per-member outputs as numpy dicts, compile s, run s, {size: bytes} of the
+    programs run).
+
+    With several local devices (GPUs, or CPU devices from
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=K``) the members axis is sharded across
+    them (`jax.sharding`; the batch is padded to a multiple of their count). ``budget`` (bytes):
+    a program that needs more (`pcrjax.memory.program_bytes`) runs as smaller batches instead, sized by
+    its need per member; a single member over the budget raises `SceneError`.
+    """
+    ndev = len(jax.local_devices())
+    size = -(-size // ndev) * ndev
     padded = scenes + [scenes[-1]] * (size - len(scenes))
     stacked = shard_members(jax.tree.map(lambda *a: jnp.stack(a), *padded))
-    key = (_signature(stacked), size, len(devices))
+    prog, compile_s = _program(stacked, size, ndev, scenes[0].effects.inertia)
+    need = program_bytes(prog)
+    if budget is not None and need > budget:
+        if size <= ndev:
+            raise SceneError(
+                f"{scenes[0].name}: one batch of {size} member(s) needs {need / 1e6:.0f} MB, more than the memory budget "
+                f"of {budget / 1e6:.0f} MB: allow more memory or shorten the run"
+            )
+        smaller = min(size - ndev, max(ndev, (size * budget // need) // ndev * ndev))
+        outs, run_s, sizes = [], 0.0, {}
+        for i in range(0, len(scenes), smaller):
+            o, c, r, z = run_members(scenes[i : i + smaller], smaller, budget)
+            outs, compile_s, run_s, sizes = outs + o, compile_s + c, run_s + r, sizes | z
+        return outs, compile_s, run_s, sizes
     t0 = time.perf_counter()
-    compile_s = 0.0
-    if key not in _PROGRAMS:
-        executables.make_room()
-        run = _run_dynamic if scenes[0].effects.inertia else _run_static
-        _PROGRAMS[key] = jax.jit(jax.vmap(run)).lower(stacked).compile()
-        compile_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-    res = jax.tree.map(np.asarray, jax.block_until_ready(_PROGRAMS[key](stacked)))
-    return [{k: v[j] for k, v in res.items()} for j in range(len(scenes))], compile_s, time.perf_counter() - t0
+    res = jax.tree.map(np.asarray, jax.block_until_ready(prog(stacked)))
+    return [{k: v[j] for k, v in res.items()} for j in range(len(scenes))], compile_s, time.perf_counter() - t0, {size: need}
 
 
 def batches(scenes: list, batch: int) -> list[tuple[list, int]]:
@@ -304,6 +328,7 @@ def sweep(
     progress: bool | Callable = False,
     source: str = "<scene>",
     cluster: str | None = None,
+    memory: int | str | None = None,
 ) -> Sweep:
     """Run variants of ``scene`` (a scene file, a shipped scene's name, or a parsed scene dict).
 
@@ -315,7 +340,11 @@ def sweep(
     came from (names it in errors; relative files in it are read from its folder). ``cluster``:
     None runs the batches in this process; ``"local"`` or ``"local:W"`` on a Dask cluster of W
     worker processes on this machine (default: one per core); an address
-    (``"tcp://host:8786"``) on that Dask scheduler's workers (`pcrjax.distributed`).
+    (``"tcp://host:8786"``) on that Dask scheduler's workers (`pcrjax.distributed`). ``memory``:
+    the most one batched program may hold, in bytes or as ``"500MB"``, ``"2GiB"`` (default: half
+    of the memory available when the sweep starts, on each worker its own); a batch that needs
+    more runs as smaller ones (``timings["batch_sizes"]``; ``timings["batch_bytes"]``: what each
+    size's program needs).
     """
     if isinstance(scene, dict):
         data = scene
@@ -328,6 +357,7 @@ def sweep(
         )
     if int(batch) < 1:
         raise SceneError("batch must be at least 1")
+    budget = None if memory is None else parse_size(memory)
     if cluster is not None:
         from . import distributed
 
@@ -341,15 +371,17 @@ def sweep(
         "run_s": 0.0,
         "programs": len({_signature(scenes[ms[0]]) for ms, _ in jobs}),
         "batch": int(batch),
+        "batch_bytes": {},
     }
     outs: list = [None] * len(scenes)
     done = 0
 
     def collect(members, result):
         nonlocal done
-        member_outs, compile_s, run_s = result
+        member_outs, compile_s, run_s, sizes = result
         timings["compile_s"] += compile_s
         timings["run_s"] += run_s
+        timings["batch_bytes"] |= sizes
         for m, o in zip(members, member_outs, strict=True):
             outs[m] = o
         done += len(members)
@@ -359,10 +391,14 @@ def sweep(
             progress(done, len(scenes))
 
     if cluster is None:
+        budget = default_budget() if budget is None else budget
+        timings["memory_budget_bytes"] = budget
         for members, size in jobs:
-            collect(members, run_members([scenes[m] for m in members], size))
+            collect(members, run_members([scenes[m] for m in members], size, budget))
     else:
-        timings["cluster"] = distributed.run_jobs(cluster, data, source, keys, values, jobs, collect)
+        timings["memory_budget_bytes"] = budget  # None: each worker's own default
+        timings["cluster"] = distributed.run_jobs(cluster, data, source, keys, values, jobs, collect, budget)
+    timings["batch_sizes"] = sorted(timings["batch_bytes"])
     name = scenes[0].name
     if not dynamic:
         return Sweep(name, keys, values, _static_outputs(outs), grid_shape=grid_shape, timings=timings)

@@ -105,6 +105,34 @@ def test_cli_sweep_bad_input_one_line_exit_2(tmp_path, capsys, case):
     assert not (out / "sweep.csv").exists()
 
 
+def test_a_batch_over_its_memory_budget_runs_as_smaller_batches(tmp_path):
+    """Six static members in one batch, then with a budget below what that batch's program
+    needs (XLA's own figure): the batch runs as smaller ones with the same results; a budget
+    below one member's need is refused with the figures."""
+    scene = _write(tmp_path, GOOD.replace("[solver]", "[effects]\ninertia = false\n[solver]"))
+    vary = {"tip.force[2]": [-2.0, -1.0, -0.5], "rod.length": [0.3, 0.4]}
+    whole = sweep(scene, vary, batch=6)
+    need = whole.timings["batch_bytes"][6]
+    assert whole.timings["batch_sizes"] == [6] and need > 0
+    split = sweep(scene, vary, batch=6, memory=int(0.7 * need))
+    assert max(split.timings["batch_sizes"]) < 6
+    assert all(b <= 0.7 * need for b in split.timings["batch_bytes"].values())
+    for k in ("x_m", "z_m", "rx_rad", "newton_iterations"):
+        np.testing.assert_allclose(split.outputs[k], whole.outputs[k], rtol=1e-12, atol=1e-15)
+    with pytest.raises(pcrjax.SceneError, match="more than the memory budget"):
+        sweep(scene, vary, batch=6, memory="1KB")
+
+
+@pytest.mark.parametrize("memory", ["lots", "0MB", "1KB"])
+def test_cli_sweep_bad_memory_one_line_exit_2(tmp_path, capsys, memory):
+    scene = _write(tmp_path, GOOD.replace("[solver]", "[effects]\ninertia = false\n[solver]"))
+    argv = ["sweep", scene, "--vary", "rod.length=0.3,0.4", "--memory", memory, "--out", str(tmp_path / "o"), "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "memory" in err[0], err
+    assert not (tmp_path / "o" / "sweep.csv").exists()
+
+
 def test_sweep_on_a_local_dask_cluster_equals_the_in_process_sweep(tmp_path):
     """Six static members in batches of three on two Dask worker processes: the same table,
     to the last digit, as in this process (the workers run the same programs on the same inputs)."""
