@@ -244,14 +244,30 @@ def _run_static(scene):
 _PROGRAMS: dict = {}  # (structure signature, batch size) -> compiled jit(vmap(run)), per process
 
 
+def _mesh():
+    devices = jax.local_devices()
+    return None if len(devices) == 1 else jax.sharding.Mesh(np.array(devices), ("members",))
+
+
 def shard_members(tree):
     """``tree``'s leading (members) axis split across the local devices (unchanged with one); the
     members must be a multiple of the devices."""
-    devices = jax.local_devices()
-    if len(devices) == 1:
+    mesh = _mesh()
+    if mesh is None:
         return tree
-    mesh = jax.sharding.Mesh(np.array(devices), ("members",))
     return jax.device_put(tree, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("members")))
+
+
+def batched(fn):
+    """``jax.vmap(fn)`` over a leading members axis; with several local devices each device runs
+    it on its own share of the members (`jax.shard_map`). Each device's Newton loops then stop
+    when its own members have converged: a program partitioned from a global `vmap` would
+    agree on every loop's stopping test across the devices at every pass."""
+    mesh = _mesh()
+    if mesh is None:
+        return jax.vmap(fn)
+    spec = jax.sharding.PartitionSpec("members")
+    return jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
 
 
 def _program(stacked, size: int, ndev: int, dynamic: bool):
@@ -262,7 +278,7 @@ def _program(stacked, size: int, ndev: int, dynamic: bool):
         return _PROGRAMS[key], 0.0
     executables.make_room()
     t0 = time.perf_counter()
-    _PROGRAMS[key] = jax.jit(jax.vmap(_run_dynamic if dynamic else _run_static)).lower(stacked).compile()
+    _PROGRAMS[key] = jax.jit(batched(_run_dynamic if dynamic else _run_static)).lower(stacked).compile()
     return _PROGRAMS[key], time.perf_counter() - t0
 
 
