@@ -424,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--memory",
         help="the most one batched program may hold, e.g. 500MB or 2GiB; a larger batch runs as smaller ones "
-        "(default: half of the memory available when the sweep starts)",
+        "(default: half of the memory available when each batch runs)",
     )
     p.add_argument(
         "--cluster",

@@ -42,10 +42,9 @@ def _task(data, source, keys, rows, size, budget):
     from .config import configure
 
     configure()  # float64 and the compilation cache, in the worker's process
-    from .memory import default_budget
     from .sweeps import _scenes, run_members
 
-    return run_members(_scenes(data, source, keys, rows), size, default_budget() if budget is None else budget)
+    return run_members(_scenes(data, source, keys, rows), size, budget)
 
 
 def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect, budget: int | None = None) -> dict:

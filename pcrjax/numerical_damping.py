@@ -23,7 +23,6 @@ import numpy as np
 
 from .errors import SceneError
 from .io.scene_file import with_solver
-from .memory import default_budget
 from .numerics import results
 from .numerics.bdf_alpha import amplification
 from .sweeps import batches, dominant_frequency, run_members
@@ -173,7 +172,7 @@ def study(
     done = 0
     for chunk, size in batches(scenes, batch):
         t0 = time.perf_counter()
-        outs, *_ = run_members([scenes[m] for m in chunk], size, default_budget())
+        outs, *_ = run_members([scenes[m] for m in chunk], size)
         wall = (time.perf_counter() - t0) / len(chunk)
         for m, o in zip(chunk, outs, strict=True):
             n, d, a = members[m]

@@ -289,17 +289,19 @@ def run_members(scenes: list, size: int, budget: int | None = None) -> tuple[lis
 
     With several local devices (GPUs, or CPU devices from
     ``XLA_FLAGS=--xla_force_host_platform_device_count=K``) the members axis is sharded across
-    them (`jax.sharding`; the batch is padded to a multiple of their count). ``budget`` (bytes):
-    a program that needs more (`pcrjax.memory.program_bytes`) runs as smaller batches instead, sized by
-    its need per member; a single member over the budget raises `SceneError`.
+    them (`jax.sharding`; the batch is padded to a multiple of their count). ``budget`` (bytes;
+    None: `pcrjax.memory.default_budget`): a program that needs more
+    (`pcrjax.memory.program_bytes`) runs as smaller batches instead, sized by its need per
+    member; a single member over the budget raises `SceneError`.
     """
+    budget = default_budget() if budget is None else budget
     ndev = len(jax.local_devices())
     size = -(-size // ndev) * ndev
     padded = scenes + [scenes[-1]] * (size - len(scenes))
     stacked = shard_members(jax.tree.map(lambda *a: jnp.stack(a), *padded))
     prog, compile_s = _program(stacked, size, ndev, scenes[0].effects.inertia)
     need = program_bytes(prog)
-    if budget is not None and need > budget:
+    if budget is not None and need > budget:  # still None where the system does not say
         if size <= ndev:
             raise SceneError(
                 f"{scenes[0].name}: one batch of {size} member(s) needs {need / 1e6:.0f} MB, more than the memory budget "
@@ -358,7 +360,7 @@ def sweep(
     worker processes on this machine (default: one per core); an address
     (``"tcp://host:8786"``) on that Dask scheduler's workers (`pcrjax.distributed`). ``memory``:
     the most one batched program may hold, in bytes or as ``"500MB"``, ``"2GiB"`` (default: half
-    of the memory available when the sweep starts, on each worker its own); a batch that needs
+    of the memory available when each batch runs, where it runs); a batch that needs
     more runs as smaller ones (``timings["batch_sizes"]``; ``timings["batch_bytes"]``: what each
     size's program needs).
     """
@@ -406,13 +408,11 @@ def sweep(
         elif callable(progress):
             progress(done, len(scenes))
 
+    timings["memory_budget_bytes"] = budget  # None: half the memory available where each batch runs
     if cluster is None:
-        budget = default_budget() if budget is None else budget
-        timings["memory_budget_bytes"] = budget
         for members, size in jobs:
             collect(members, run_members([scenes[m] for m in members], size, budget))
     else:
-        timings["memory_budget_bytes"] = budget  # None: each worker's own default
         timings["cluster"] = distributed.run_jobs(cluster, data, source, keys, values, jobs, collect, budget)
     timings["batch_sizes"] = sorted(timings["batch_bytes"])
     name = scenes[0].name
