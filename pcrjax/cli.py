@@ -192,18 +192,14 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def cmd_inverse(args) -> int:
-    from .io import outputs
+def _path_arg(args, scene):
+    """The `PosePath` of ``--path`` and the scene lasting as long as the path (or ``--duration``)."""
     from .io.scene_file import with_solver
     from .io.tables import TableError, read_path
-    from .replay import path_errors, replay
-    from .robots.inverse import check_square
-    from .robots.limits import feasibility
     from .robots.signals import PosePath
-    from .simulation import inverse_dynamics
 
-    scene = _scene(args)
-    check_square(scene)
+    if args.path is None:
+        raise SceneError(f"--goal {args.goal} needs --path PATH.csv")
     try:
         t_path, values = read_path(args.path, scene.effects.planar)
     except TableError as e:
@@ -216,7 +212,19 @@ def cmd_inverse(args) -> int:
         scene = with_solver(scene, duration=float(t_path[-1]))
     elif args.duration > t_path[-1] + 1e-12:
         raise SceneError(f"--duration {args.duration} s is longer than the path ({t_path[-1]} s)")
-    path = PosePath.from_samples(t_path, values)
+    return scene, PosePath.from_samples(t_path, values)
+
+
+def cmd_inverse(args) -> int:
+    from .io import outputs
+    from .replay import path_errors, replay
+    from .robots.inverse import check_square
+    from .robots.limits import feasibility
+    from .simulation import inverse_dynamics
+
+    scene = _scene(args)
+    check_square(scene)
+    scene, path = _path_arg(args, scene)
     out = _out_dir(args.out)
     progress = not args.quiet and sys.stderr.isatty()
     timings: dict = {}
@@ -283,36 +291,65 @@ def cmd_inverse(args) -> int:
 
 
 def cmd_design(args) -> int:
+    goals = {"move": _design_move, "fastest": _design_fastest, "track": _design_track}
+    if args.goal not in goals:
+        raise SceneError(f"--goal {args.goal}: unknown (available: {', '.join(goals)})")
+    if args.goal != "track" and args.time is None:
+        raise SceneError(
+            f"--goal {args.goal} needs --time (s: the move's duration{', at most' if args.goal == 'fastest' else ''})"
+        )
+    log = (lambda *_: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    return goals[args.goal](args, _scene(args), log)
+
+
+def _move_goal(args, scene):
+    planar = scene.effects.planar
+    dp = [args.dx, args.dy, 0.0 if planar else args.dz]
+    dtheta = [0.0, 0.0, args.dtheta] if planar else [args.drx, args.dry, args.dtheta]
+    return dp, dtheta, (args.time if args.settle is None else args.settle)
+
+
+def _write_move(out, scene, move, coeffs, summary: dict, band: float, title: str) -> dict:
+    """The designed and plain moves, each run on the design grid and the finer one: their
+    actuator tables, settling figures and feasibility into ``summary``, summary.json and design.png."""
     import jax.numpy as jnp
 
     from . import design
     from .io import outputs
     from .robots.limits import feasibility
 
-    if args.goal != "move":
-        raise SceneError(f"--goal {args.goal}: not available in this version (available: move)")
-    scene = _scene(args)
-    planar = scene.effects.planar
-    dp = [args.dx, args.dy, 0.0 if planar else args.dz]
-    dtheta = [0.0, 0.0, args.dtheta] if planar else [args.drx, args.dry, args.dtheta]
-    out = _out_dir(args.out)
-    settle = args.time if args.settle is None else args.settle
-    move, scene = design.plan_move(scene, dp, dtheta, args.time, settle, args.knots)
-    log = (lambda *_: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    res = design.design_move(scene, move, method=args.method, iterations=args.iterations, log=log)
-    c = res["coefficients"]
-    zero = jnp.zeros_like(c)
+    zero = jnp.zeros_like(coeffs)
     runs = {}
-    for label, coeffs in (("plain", zero), ("designed", c)):
+    for label, c in (("plain", zero), ("designed", coeffs)):
         for grid, finer in (("same_grid", False), ("finer_grid", True)):
-            runs[(label, grid)] = design.verify(scene, move, coeffs, finer=finer)
-    t = np.asarray(runs[("designed", "same_grid")].t)
-    for label, coeffs in (("plain", zero), ("designed", c)):
-        a = np.asarray(move.actuators(t, coeffs))
-        name = "actuators.csv" if label == "designed" else "plain_actuators.csv"
+            runs[(label, grid)] = design.verify(scene, move, c, finer=finer)
+            summary.setdefault(label, {})[grid] = design.settling(runs[(label, grid)], move, band)
+        t = np.asarray(runs[(label, "same_grid")].t)
+        a = np.asarray(move.actuators(t, c))
         outputs.write_columns(
-            out / name, ["t_s"] + [f"a{i + 1}" for i in range(a.shape[1])], np.concatenate([t[:, None], a], axis=1)
+            out / ("actuators.csv" if label == "designed" else "plain_actuators.csv"),
+            ["t_s"] + [f"a{i + 1}" for i in range(a.shape[1])],
+            np.concatenate([t[:, None], a], axis=1),
         )
+    d = runs[("designed", "same_grid")]
+    summary["feasibility"] = feasibility(scene, d.t, d.actuators, d.base_wrenches)
+    summary["vibration_reduction_finer_grid"] = (
+        summary["plain"]["finer_grid"]["residual_vibration_m"] / summary["designed"]["finer_grid"]["residual_vibration_m"]
+    )
+    summary["coefficients"] = np.asarray(coeffs).tolist()
+    outputs.write_json(out / "summary.json", summary)
+    outputs.plot_design(out / "design.png", runs, move, title)
+    return summary
+
+
+def _design_move(args, scene, log) -> int:
+    from . import design
+    from .io import outputs
+
+    dp, dtheta, settle = _move_goal(args, scene)
+    out = _out_dir(args.out)
+    move, scene = design.plan_move(scene, dp, dtheta, args.time, settle, args.knots or 4)
+    res = design.design_move(scene, move, method=args.method, iterations=args.iterations, log=log)
     summary = {
         "settings": outputs.scene_settings(scene),
         "goal": {"kind": "move", "displacement_m": dp, "rotation_rad": dtheta, "time_s": args.time, "settle_s": settle},
@@ -320,22 +357,103 @@ def cmd_design(args) -> int:
         "objective_m2": res["objective"],
         "compile_s": res["compile_s"],
         "optimise_s": res["optimise_s"],
-        "coefficients": np.asarray(c).tolist(),
     }
-    for (label, grid), traj in runs.items():
-        summary.setdefault(label, {})[grid] = design.settling(traj, move)
-    d = runs[("designed", "same_grid")]
-    summary["feasibility"] = feasibility(scene, d.t, d.actuators, d.base_wrenches)
-    ratio = summary["plain"]["finer_grid"]["residual_vibration_m"] / summary["designed"]["finer_grid"]["residual_vibration_m"]
-    summary["vibration_reduction_finer_grid"] = ratio
-    outputs.write_json(out / "summary.json", summary)
-    outputs.plot_design(out / "design.png", {k: runs[k] for k in runs}, move, f"{scene.name}: designed move")
+    s = _write_move(out, scene, move, res["coefficients"], summary, args.band, f"{scene.name}: designed move")
     if not args.quiet:
         print(
-            f"{scene.name}: residual vibration {summary['plain']['finer_grid']['residual_vibration_m']:.3g} m (plain) -> "
-            f"{summary['designed']['finer_grid']['residual_vibration_m']:.3g} m (designed), {ratio:.3g}x smaller on the finer "
-            f"grid; {len(res['objective']) - 1} {res['method']} iterations in {res['optimise_s']:.1f} s after {res['compile_s']:.1f} s "
-            f"compile; {'within limits' if summary['feasibility']['feasible'] else 'LIMITS EXCEEDED'}; wrote {out}/"
+            f"{scene.name}: residual vibration {s['plain']['finer_grid']['residual_vibration_m']:.3g} m (plain) -> "
+            f"{s['designed']['finer_grid']['residual_vibration_m']:.3g} m (designed), {s['vibration_reduction_finer_grid']:.3g}x "
+            f"smaller on the finer grid; {len(res['objective']) - 1} {res['method']} iterations in {res['optimise_s']:.1f} s after "
+            f"{res['compile_s']:.1f} s compile; {'within limits' if s['feasibility']['feasible'] else 'LIMITS EXCEEDED'}; wrote {out}/"
+        )
+    return 0
+
+
+def _design_fastest(args, scene, log) -> int:
+    from . import design
+    from .io import outputs
+
+    dp, dtheta, settle = _move_goal(args, scene)
+    out = _out_dir(args.out)
+    t0 = time.perf_counter()
+    res = design.fastest_move(
+        scene, dp, dtheta, args.time, settle, count=args.knots or 4, band=args.band, iterations=args.iterations, log=log
+    )
+    move, scene = res["move"], res["scene"]
+    summary = {
+        "settings": outputs.scene_settings(scene),
+        "goal": {"kind": "fastest", "displacement_m": dp, "rotation_rad": dtheta, "longest_s": args.time, "band_m": args.band},
+        "fastest_duration_s": move.duration,
+        "lower_bound_s": res["lower_bound_s"],
+        "trials": res["trials"],
+        "wall_s": time.perf_counter() - t0,
+    }
+    s = _write_move(out, scene, move, res["coefficients"], summary, args.band, f"{scene.name}: fastest designed move")
+    if not args.quiet:
+        print(
+            f"{scene.name}: fastest move {move.duration * 1e3:.4g} ms (the limits allow no less than {res['lower_bound_s'] * 1e3:.4g} ms), "
+            f"residual vibration {s['designed']['finer_grid']['residual_vibration_m']:.3g} m on the finer grid; "
+            f"{len(res['trials'])} designs in {summary['wall_s']:.1f} s; wrote {out}/"
+        )
+    return 0
+
+
+def _design_track(args, scene, log) -> int:
+    from . import design
+    from .io import outputs
+    from .replay import path_errors
+    from .robots.limits import feasibility
+
+    scene, path = _path_arg(args, scene)
+    out = _out_dir(args.out)
+    tr, start, inverse = design.plan_tracking(scene, path, args.knots or 8)
+    outputs.write_columns(
+        out / "inverse_actuators.csv",
+        ["t_s"] + [f"a{i + 1}" for i in range(inverse.actuators.shape[1])],
+        np.concatenate([np.asarray(inverse.t)[:, None], np.asarray(inverse.actuators)], axis=1),
+    )
+    res = design.design_tracking(scene, tr, start, iterations=args.iterations, log=log)
+    c = res["coefficients"]
+    t, a = design.step_times(scene), np.asarray(tr.actuators(c))
+    outputs.write_columns(
+        out / "actuators.csv", ["t_s"] + [f"a{i + 1}" for i in range(a.shape[1])], np.concatenate([t[:, None], a], axis=1)
+    )
+    run = design.verify_tracking(scene, tr, c, finer=False)
+    outputs.write_trajectory(out / "tracking.csv", run)
+    errors = {"same_grid": path_errors(path, run)}
+    try:
+        errors["finer_grid"] = path_errors(path, design.verify_tracking(scene, tr, c, finer=True))
+    except ConvergenceError as e:
+        errors["finer_grid"] = {"failure": f"the finer grid's check of the design: {e}"}
+    summary = {
+        "settings": outputs.scene_settings(scene),
+        "goal": {"kind": "track", "path_file": str(args.path), "speed_splines": tr.count},
+        "direct_inverse_feasibility": feasibility(scene, inverse.t, inverse.actuators, inverse.base_wrenches),
+        "tracking_error": {grid: {k: v for k, v in e.items() if not isinstance(v, np.ndarray)} for grid, e in errors.items()},
+        "feasibility": feasibility(scene, run.t, run.actuators, run.base_wrenches),
+        "objective_m2": res["objective"],
+        "compile_s": res["compile_s"],
+        "optimise_s": res["optimise_s"],
+        "coefficients": np.asarray(c).tolist(),
+    }
+    outputs.write_json(out / "summary.json", summary)
+    planar = scene.effects.planar
+    wanted = np.asarray(inverse.position)[:, : 2 if planar else 3]
+    outputs.plot_inverse(
+        out / "tracking.png", t, wanted, np.asarray(run.position)[:, : 2 if planar else 3], a, errors["same_grid"]["position_m"],
+        f"{scene.name}: path tracked within the actuator limits", got="designed motion",
+    )  # fmt: skip
+    e = summary["tracking_error"]
+    if "failure" in e["finer_grid"]:
+        raise ConvergenceError(f"{e['finer_grid']['failure']} (the design is in {out}/)", 0.0)
+    if not args.quiet:
+        inv_ok = summary["direct_inverse_feasibility"]["feasible"]
+        print(
+            f"{scene.name}: tracking error {e['same_grid']['max_position_error_m']:.3g} m ({e['same_grid']['relative_error']:.2g} of "
+            f"the motion; {e['finer_grid']['max_position_error_m']:.3g} m on the finer grid); the direct inverse is "
+            f"{'within' if inv_ok else 'outside'} the limits, the design "
+            f"{'within' if summary['feasibility']['feasible'] else 'OUTSIDE'}; {len(res['objective']) - 1} LM iterations in "
+            f"{res['optimise_s']:.1f} s after {res['compile_s']:.1f} s compile; wrote {out}/"
         )
     return 0
 
@@ -392,17 +510,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_inverse)
     p = sub.add_parser(
         "design",
-        help="trajectory design by gradient: a point-to-point platform move without residual vibration; writes "
-        "actuators.csv, plain_actuators.csv, summary.json and design.png",
+        help="trajectory design by gradient: a point-to-point platform move without residual vibration (--goal move), "
+        "the fastest such move within the actuator limits (fastest), or a path tracked within them (track); writes "
+        "actuators.csv, summary.json and a plot",
     )
     p.add_argument("scene")
-    p.add_argument("--goal", default="move", help="move (point-to-point, least residual vibration)")
+    p.add_argument(
+        "--goal",
+        default="move",
+        help="move (point-to-point in --time, least residual vibration), fastest (the shortest move up to --time that "
+        "stays within the limits and settles into --band), track (follow --path as closely as the limits allow)",
+    )
     for key, unit in (("dx", "m"), ("dy", "m"), ("dz", "m"), ("drx", "rad"), ("dry", "rad"), ("dtheta", "rad (about z)")):
         p.add_argument(f"--{key}", type=float, default=0.0, help=f"platform move {key[1:]} [{unit}]")
-    p.add_argument("--time", type=float, required=True, help="duration of the move (s)")
+    p.add_argument("--time", type=float, help="move, fastest: duration of the move (fastest: the longest allowed) (s)")
     p.add_argument("--settle", type=float, help="settling window after the move (s; default: the move's duration)")
-    p.add_argument("--knots", type=int, default=4, help="correction B-splines per actuator (default 4)")
-    p.add_argument("--method", choices=["lm", "adam"], default="lm", help="optimiser (default lm)")
+    p.add_argument("--band", type=float, default=1e-6, help="settling band around the target (m; default 1e-6)")
+    p.add_argument("--path", help="track: CSV t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad (planar robots: also t_s,x_m,y_m,theta_rad)")
+    p.add_argument("--knots", type=int, help="B-splines per actuator: move corrections (default 4), track speeds (default 8)")
+    p.add_argument("--method", choices=["lm", "adam"], default="lm", help="move: optimiser (default lm)")
     p.add_argument("--iterations", type=int, default=8, help="optimiser iterations at most")
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--quiet", action="store_true")

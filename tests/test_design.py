@@ -9,8 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import pcrjax
 from pcrjax import cli, design, load_scene, with_solver
+from pcrjax.io.tables import read_path
+from pcrjax.physics.rotations import rotz
+from pcrjax.replay import path_errors
+from pcrjax.robots.inverse import solve_static_inverse
 from pcrjax.robots.limits import feasibility
+from pcrjax.robots.signals import PosePath
 
 NO_LOAD = (jnp.zeros(3), jnp.zeros(3))
 
@@ -24,7 +30,7 @@ def test_correction_basis_is_smooth_and_vanishes_at_the_ends():
     # The clamped quintic basis is a partition of unity (a property of B-splines, not of this
     # code); the corrections keep the move's end values, velocities and accelerations.
     u = np.linspace(0.0, 1.0, 1001)
-    full = design._bspline_basis(u, 10)
+    full = design.bspline_basis(u, 10)
     assert np.abs(full.sum(axis=1) - 1.0).max() < 1e-12
     h = 1e-4
     t = np.array([0.0, h, 2 * h, 1.0 - 2 * h, 1.0 - h, 1.0])
@@ -97,4 +103,94 @@ def test_cli_design_refuses_a_move_no_trajectory_can_make(tmp_path, capsys):
     argv = ["design", "triskele", "--dx", "5e-4", "--time", "0.01", "--nodes", "5", "--dt", "5e-4", "--out", str(tmp_path)]
     rc = cli.main(argv + ["--quiet"])
     err = capsys.readouterr().err
-    assert rc == 2 and "no trajectory moves actuator" in err and err.count("\n") == 1, err
+    assert rc == 2 and "no trajectory makes the move in 0.01 s" in err and err.count("\n") == 1, err
+
+
+def test_cli_design_fastest_move(tmp_path):
+    """The fastest 5 um move that stays within the SLC-1730's 2 mm/s and settles into +-1 um
+    (on the finer grid) by the end of the move: no faster than the stroke at top speed allows
+    (an oracle independent of the design), and a trial shorter than the answer was refused."""
+    out = tmp_path / "f"
+    argv = ["design", "triskele", "--goal", "fastest", "--dx", "5e-6", "--time", "0.01", "--settle", "0.006", "--knots", "2"]
+    rc = cli.main(argv + ["--iterations", "2", "--nodes", "5", "--dt", "5e-4", "--out", str(out), "--quiet"])
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    T = s["fastest_duration_s"]
+    rest_to_target = np.loadtxt(out / "actuators.csv", delimiter=",", skiprows=1)
+    stroke = np.abs(rest_to_target[-1, 1:] - rest_to_target[0, 1:]).max()
+    assert T >= stroke / 0.002 and s["lower_bound_s"] == pytest.approx(stroke / 0.002, rel=1e-9)
+    assert s["feasibility"]["feasible"] and s["designed"]["finer_grid"]["settling_time_s"] == 0.0
+    refused = [t["duration_s"] for t in s["trials"] if not t["accepted"]]
+    accepted = [t["duration_s"] for t in s["trials"] if t["accepted"]]
+    assert min(accepted) == T and refused and max(refused) < T
+    assert T - max(r for r in refused if r < T) <= 0.05 * 0.01 + 1e-12  # bisection to 5 % of the longest move
+
+
+def _lag_bound(t, a_inverse, vmax, G):
+    """Least largest platform pose error of any motion whose actuators move no faster than
+    ``vmax`` from the path's start, quasi-statically and to first order: actuator i cannot be
+    nearer its inverse value than |a_i(t) - a_i(0)| - vmax t, and a pose error e (x, y, lever
+    times the angle) moves the actuators by at most |G| |e| (G: the static inverse's derivative)."""
+    lag = np.maximum(np.abs(a_inverse - a_inverse[0]) - vmax * t[:, None], 0.0).max()
+    return lag / np.linalg.norm(G, 2)
+
+
+def test_design_tracks_a_path_within_the_speed_limit(tmp_path):
+    """The shipped 1 mm move in 0.3 s needs 5.9 mm/s of the SLC-1730's 2 mm/s stages. The tracking
+    design stays within the limit (by construction), lags the path no less than the speed limit
+    forces (a quasi-static bound from the static inverse), does better than its start, and its
+    finer-grid check agrees. With the speed unlimited, the design reproduces the direct inverse
+    (the exact answer, an independent solve) to the spline's resolution."""
+    out = tmp_path / "t"
+    argv = ["design", "triskele", "--goal", "track", "--path", "triskele_move", "--knots", "6", "--iterations", "3"]
+    rc = cli.main(argv + ["--nodes", "5", "--dt", "2e-3", "--out", str(out), "--quiet"])
+    assert rc == 0
+    for f in ("actuators.csv", "inverse_actuators.csv", "tracking.csv", "summary.json", "tracking.png"):
+        assert (out / f).is_file(), f
+    s = json.loads((out / "summary.json").read_text())
+    assert not s["direct_inverse_feasibility"]["feasible"]
+    assert s["feasibility"]["feasible"] and max(s["feasibility"]["peak_speed"]) <= 0.002
+    assert s["objective_m2"][-1] < 0.7 * s["objective_m2"][0]
+    same, finer = (s["tracking_error"][g]["max_position_error_m"] for g in ("same_grid", "finer_grid"))
+    assert abs(finer - same) < 0.05 * same
+    inv = np.loadtxt(out / "inverse_actuators.csv", delimiter=",", skiprows=1)
+    sc = load_scene("triskele")
+    rest = pcrjax.solve_static(sc)
+    lever = design.default_lever(sc)
+
+    def actuators(q):
+        p = rest.position + jnp.stack([q[0], q[1], 0.0])
+        return solve_static_inverse(sc, p, rotz(rest.rotation_vector[2] + q[2] / lever)).actuators
+
+    bound = _lag_bound(inv[:, 0], inv[:, 1:], 0.002, np.asarray(jax.jacfwd(actuators)(jnp.zeros(3))))
+    err = s["tracking_error"]["same_grid"]
+    pose = np.hypot(err["max_position_error_m"], lever * err["max_rotation_error_rad"])
+    print(f"tracking error {same:.3g} m (pose {pose:.3g} m), speed-limit bound {bound:.3g} m")
+    assert 0.9 * bound <= pose
+
+    # the speed unlimited: the direct inverse is feasible, and the design's answer
+    sc = with_solver(sc, nodes=5, dt=2e-3, duration=0.4)
+    lim = sc.actuation.limits
+    sc = eqx.tree_at(lambda s: s.actuation.limits.max_speed, sc, jnp.full(3, jnp.inf))
+    t, v = read_path("triskele_move", planar=True)
+    path = PosePath.from_samples(t, v)
+    tr, start, inverse = design.plan_tracking(sc, path, 6)
+    res = design.design_tracking(sc, tr, start, iterations=2)
+    err = path_errors(path, design.verify_tracking(sc, tr, res["coefficients"], finer=False))
+    print(f"unlimited: {err['max_position_error_m']:.3g} m, {err['relative_error']:.3g} of the motion")
+    assert err["relative_error"] < 1e-2 and np.isinf(np.asarray(tr.max_speed)).all() and lim is not None
+
+
+@pytest.mark.parametrize(
+    "extra,needle",
+    [
+        (["--goal", "track"], "--goal track needs --path"),
+        (["--goal", "fastest", "--dx", "1e-6"], "--goal fastest needs --time"),
+        (["--goal", "hover", "--time", "0.01"], "--goal hover: unknown"),
+    ],
+)
+def test_cli_design_bad_goals(tmp_path, capsys, extra, needle):
+    rc = cli.main(["design", "triskele", *extra, "--out", str(tmp_path / "x"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x" / "summary.json").exists()

@@ -186,10 +186,10 @@ def plot_shapes(path: Path, traj, title: str, count: int = 12):
     plt.close(fig)
 
 
-def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str):
+def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str, got: str = "forward replay"):
     """Inverse dynamics at a glance (as thesis Fig. 4.10-4.11): the prescribed path and its
-    forward replay in the plane of largest motion; the actuator values; each coordinate
-    prescribed and replayed over time with the replay's position error."""
+    forward replay (or the run named ``got``) in the plane of largest motion; the actuator
+    values; each coordinate prescribed and replayed over time with the replay's position error."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -202,7 +202,7 @@ def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str):
     fig, ax = plt.subplots(1, 3, figsize=(16, 4.5))
     ax[0].plot(d[:, i] * f, d[:, j] * f, lw=2.5, color="tab:blue", label="prescribed (inverse)")
     r = (replayed - wanted[0]) * f
-    ax[0].plot(r[:, i], r[:, j], lw=1, ls="--", color="tab:red", label="forward replay")
+    ax[0].plot(r[:, i], r[:, j], lw=1, ls="--", color="tab:red", label=got)
     ax[0].set_xlabel(f"{'xyz'[i]} − {'xyz'[i]}(0) [{unit}]")
     ax[0].set_ylabel(f"{'xyz'[j]} − {'xyz'[j]}(0) [{unit}]")
     ax[0].set_aspect("equal", adjustable="datalim")
@@ -220,15 +220,15 @@ def plot_inverse(path: Path, t, wanted, replayed, actuators, error, title: str):
     ax[1].set_title("actuator trajectories")
     for k, c in ((i, "tab:blue"), (j, "tab:orange")):
         ax[2].plot(t, d[:, k] * f, color=c, lw=2.5, label=f"{'xyz'[k]} prescribed")
-        ax[2].plot(t, (replayed[:, k] - wanted[0, k]) * f, color="k", lw=0.8, ls="--", label=f"{'xyz'[k]} replayed")
+        ax[2].plot(t, (replayed[:, k] - wanted[0, k]) * f, color="k", lw=0.8, ls="--", label=f"{'xyz'[k]}, {got}")
     ax[2].set_xlabel("t [s]")
     ax[2].set_ylabel(f"displacement [{unit}]")
     ax[2].grid(alpha=0.3)
     ax[2].legend(loc="upper left")
     tw = ax[2].twinx()  # log scale: the error is at the solver's tolerance when all is well
     tw.semilogy(t, np.maximum(error, 1e-18), color="tab:green", lw=1)
-    tw.set_ylabel("replay position error [m]", color="tab:green")
-    ax[2].set_title("prescribed vs replayed")
+    tw.set_ylabel(f"position error of the {got} [m]", color="tab:green")
+    ax[2].set_title(f"prescribed vs {got}")
     _save(fig, path, title)
 
 

@@ -1,6 +1,6 @@
-r"""Trajectory design by gradient through the differentiable rollout.
+r"""Point-to-point moves designed by gradient through the differentiable rollout.
 
-**Point-to-point moves.** The platform is to go from its rest pose to a target pose in a given
+The platform is to go from its rest pose to a target pose in a given
 time ``T`` and stay there. The plain move drives each actuator from its rest value $a_0$ to the
 static inverse solution at the target, $a_1$, along the quintic smooth step $s(t/T)$ (zero
 velocity and acceleration at both ends); the platform, pushed through its own dynamics, then
@@ -11,7 +11,9 @@ with $B_k$ the quintic B-splines on uniform knots over [0, 1] whose value, veloc
 acceleration are zero at 0 and 1 (the first and last three of the clamped basis are dropped).
 The coefficients minimise the residual vibration: the platform's pose error against the target
 over a settling window after the move (positions in metres, the rotation times a lever arm),
-as least squares through `rollout` (implicit gradients).
+as least squares through `rollout` (implicit gradients). Where the scene's actuators have
+limits, their penalty rows (`least_squares.limit_rows`, scaled by the move's duration) join the
+residual.
 
 Two optimisers: Levenberg-Marquardt on the residual vector with its Jacobian by forward mode
 (`jax.jacfwd`, one JVP per coefficient, the per-step factorisation shared), or optax's Adam on
@@ -24,50 +26,20 @@ from __future__ import annotations
 import dataclasses
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ConvergenceError, SceneError
-from .io.scene_file import with_solver
-from .numerics import results
-from .physics.rotations import exp_map, matmul, rotation_vector, transpose_matmul
-from .replay import with_actuator_table
-from .robots.inverse import check_square, solve_static_inverse
-from .simulation import rollout, simulate, solve_static
-
-
-def _bspline_basis(u, n_basis: int, degree: int = 5) -> np.ndarray:
-    """(len(u), n_basis) clamped uniform B-spline basis of ``degree`` on [0, 1] (Cox-de Boor)."""
-    u = np.clip(np.asarray(u, np.float64), 0.0, 1.0)
-    inner = np.linspace(0.0, 1.0, n_basis - degree + 1)
-    knots = np.concatenate([np.zeros(degree), inner, np.ones(degree)])
-    B = np.zeros((u.size, knots.size - 1))
-    for j in range(knots.size - 1):
-        B[:, j] = (knots[j] <= u) & (u < knots[j + 1])
-    B[u >= 1.0, n_basis - 1] = 1.0  # the right end belongs to the last non-empty span
-    B[u >= 1.0, n_basis:] = 0.0
-    for d in range(1, degree + 1):
-        for j in range(knots.size - 1 - d):
-            left = knots[j + d] - knots[j]
-            right = knots[j + d + 1] - knots[j + 1]
-            a = (u - knots[j]) / left * B[:, j] if left > 0 else 0.0
-            b = (knots[j + d + 1] - u) / right * B[:, j + 1] if right > 0 else 0.0
-            B[:, j] = a + b
-    return B[:, :n_basis]
-
-
-def correction_basis(t, duration: float, count: int) -> np.ndarray:
-    """(len(t), count) smooth corrections on [0, duration], zero with their first two derivatives
-    at both ends and outside: the interior quintic B-splines of ``count + 6`` on [0, 1]."""
-    t = np.asarray(t, np.float64)
-    B = _bspline_basis(t / duration, count + 6)[:, 3:-3]
-    return np.where(((t >= 0.0) & (t <= duration))[:, None], B, 0.0)
-
-
-def smooth_step(u):
-    u = jnp.clip(u, 0.0, 1.0)
-    return u**3 * (10.0 - 15.0 * u + 6.0 * u**2)
+from ..errors import ConvergenceError, SceneError
+from ..io.scene_file import with_solver
+from ..numerics import results
+from ..physics.rotations import exp_map, matmul, rotation_vector, transpose_matmul
+from ..replay import with_actuator_table
+from ..robots.inverse import check_square, solve_static_inverse
+from ..simulation import rollout, simulate, solve_static
+from .least_squares import levenberg_marquardt, limit_rows
+from .splines import correction_basis, smooth_step
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,9 +83,21 @@ def plan_move(scene, dp, dtheta, duration: float, settle: float, count: int = 4)
     return move, with_solver(scene, duration=float(duration + settle))
 
 
+def shortest_duration(a0, a1, limits) -> float:
+    """The least time any trajectory from ``a0`` to ``a1`` (n,) needs within ``limits``: the
+    stroke at the top speed, or accelerating for half of it and braking for the other half."""
+    if limits is None:
+        return 0.0
+    d = np.abs(np.asarray(a1) - np.asarray(a0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        by_speed = np.nan_to_num(d / np.asarray(limits.max_speed))
+        by_acceleration = np.nan_to_num(2.0 * np.sqrt(d / np.asarray(limits.max_acceleration)))
+    return float(max(by_speed.max(initial=0.0), by_acceleration.max(initial=0.0)))
+
+
 def _check_reachable(scene, a0, a1, duration: float):
     """Raise `SceneError` if no trajectory meets the actuator limits: the target outside the
-    range, or a stroke that even a constant speed cannot cover in ``duration``."""
+    range, or a stroke that even at the top speed and acceleration takes longer than ``duration``."""
     lim = scene.actuation.limits if scene.actuation is not None else None
     if lim is None:
         return
@@ -124,28 +108,79 @@ def _check_reachable(scene, a0, a1, duration: float):
             raise SceneError(
                 f"the move's target needs actuator {i + 1} at {a1[i]:.6g} m, outside its range [{lo:.6g}, {hi:.6g}] m"
             )
-        need = abs(a1[i] - a0[i]) / duration
-        if need > float(lim.max_speed[i]):
-            raise SceneError(
-                f"no trajectory moves actuator {i + 1} by {abs(a1[i] - a0[i]):.3g} m in {duration:.3g} s within its max_speed "
-                f"{float(lim.max_speed[i]):.3g} m/s (it needs at least {need:.3g} m/s on average): allow more time"
-            )
+    need = shortest_duration(a0, a1, lim)
+    if need > duration:
+        raise SceneError(
+            f"no trajectory makes the move in {duration:.3g} s within the actuators' max_speed and max_acceleration "
+            f"(strokes {np.array2string(np.abs(a1 - a0), precision=3)} m need at least {need:.3g} s): allow more time"
+        )
 
 
-def _driven(scene, move: Move, coeffs):
-    t = np.arange(scene.solver.steps + 1) * float(scene.solver.dt)
-    return with_actuator_table(scene, t, move.actuators(t, coeffs))
+class MoveTables(eqx.Module):
+    """A move on a scene's step times (T,): the plain move's actuator values ``plain`` (T, n),
+    the corrections ``basis`` (T, count), ``after`` (T,) 1 in the settling window and 0 before,
+    the target ``p1``, ``R1``, and ``time_scale`` (the move's duration, s). Arrays only, so that
+    one compiled design program serves moves of every duration on the same steps."""
+
+    plain: jnp.ndarray
+    basis: jnp.ndarray
+    after: jnp.ndarray
+    p1: jnp.ndarray
+    R1: jnp.ndarray
+    time_scale: jnp.ndarray
+
+
+def step_times(scene) -> np.ndarray:
+    return np.arange(scene.solver.steps + 1) * float(scene.solver.dt)
+
+
+def move_tables(scene, move: Move) -> MoveTables:
+    t = step_times(scene)
+    return MoveTables(
+        plain=jnp.asarray(move.actuators(t, jnp.zeros((move.count, move.a0.shape[0])))),
+        basis=jnp.asarray(correction_basis(t, move.duration, move.count)),
+        after=jnp.asarray(t > move.duration + 0.5 * float(scene.solver.dt), jnp.float64),
+        p1=move.p1,
+        R1=move.R1,
+        time_scale=jnp.asarray(move.duration, jnp.float64),
+    )
+
+
+def _settling_rows(scene, tab: MoveTables, coeffs, lever):
+    """(T, 4) rows: the position error (m) and rotation error times ``lever`` (m) against the
+    target in the settling window, zero before it; the actuator table; the rollout's codes."""
+    a = tab.plain + tab.basis @ coeffs
+    traj = rollout(with_actuator_table(scene, step_times(scene), a))
+    on = tab.after[:, None] > 0.0
+    dp = traj.position - tab.p1
+    dR = jax.vmap(lambda rv: rotation_vector(transpose_matmul(tab.R1, exp_map(rv))))(traj.rotation_vector)
+    dR = jnp.where(on, dR, 1.0)  # no norm at zero (rest before a pure translation), whose gradient is NaN
+    rows = jnp.concatenate([dp, lever * jnp.linalg.norm(dR, axis=1, keepdims=True)], axis=1)
+    return jnp.where(on, rows, 0.0), a, traj.result
 
 
 def vibration(scene, move: Move, coeffs, lever: float):
     """Residuals (settling steps x 4): the platform's position error (m) and rotation error times
     ``lever`` (m) against the target at every step of the settling window."""
-    traj = rollout(_driven(scene, move, coeffs))
-    t = np.arange(scene.solver.steps + 1) * float(scene.solver.dt)
-    after = t > move.duration + 0.5 * float(scene.solver.dt)
-    dp = traj.position[after] - move.p1
-    dR = jax.vmap(lambda rv: rotation_vector(transpose_matmul(move.R1, exp_map(rv))))(traj.rotation_vector[after])
-    return jnp.concatenate([dp, lever * jnp.linalg.norm(dR, axis=1, keepdims=True)], axis=1), traj.result
+    t = step_times(scene)
+    rows, _, code = _settling_rows(scene, move_tables(scene, move), coeffs, lever)
+    return rows[t > move.duration + 0.5 * float(scene.solver.dt)], code
+
+
+def move_residual(scene, lever: float):
+    """``residual(c, tables) -> (r, code)``: the settling rows and, where the scene's actuators
+    have limits, the penalty rows (`limit_rows`) of the coefficients ``c`` (count * n,)."""
+    limits = scene.actuation.limits if scene.actuation is not None else None
+    dt = scene.solver.dt
+
+    def residual(c, tab):
+        rows, a, code = _settling_rows(scene, tab, c.reshape(tab.basis.shape[1], -1), lever)
+        r = rows.reshape(-1)
+        if limits is not None:
+            r = jnp.concatenate([r, limit_rows(a, dt, limits, tab.time_scale)])
+        return r, jnp.max(code)
+
+    return residual
 
 
 def settling(traj, move: Move, band: float = 1e-6) -> dict:
@@ -162,63 +197,59 @@ def settling(traj, move: Move, band: float = 1e-6) -> dict:
     }
 
 
-def design_move(scene, move: Move, *, method: str = "lm", iterations: int = 10, lever: float | None = None, log=print) -> dict:
+class MovePrograms:
+    """The compiled residual and Jacobian (forward mode) of moves on ``scene``'s steps, kept for
+    every move of the same step count and number of coefficients."""
+
+    def __init__(self, scene, lever: float):
+        residual = move_residual(scene, lever)
+        self.residual = jax.jit(residual)
+        self.jacobian = jax.jit(jax.jacfwd(lambda c, tab: residual(c, tab)[0]))
+        self.gradient = jax.jit(jax.value_and_grad(lambda c, tab: jnp.sum(residual(c, tab)[0] ** 2)))
+
+
+def default_lever(scene) -> float:
+    """The arm (m) that turns platform rotation errors into distances: its largest attachment radius."""
+    return float(jnp.max(jnp.linalg.norm(scene.end.attachment, axis=1)))
+
+
+def design_move(
+    scene, move: Move, *, method: str = "lm", iterations: int = 10, lever: float | None = None, log=print, programs=None
+) -> dict:
     """Optimise the move's correction coefficients from zero (the plain move). Returns a dict:
     ``coefficients`` (count, n), ``objective`` (sum of squares, m^2, per iteration, the plain
     move's first), ``compile_s``, ``optimise_s``, ``method``: "lm" (Levenberg-Marquardt,
     forward-mode Jacobian) or "adam" (optax, reverse-mode gradient). Trial steps whose rollout
-    does not converge are rejected; a plain move that does not converge raises."""
+    does not converge are rejected; a plain move that does not converge raises. ``programs``
+    (`MovePrograms`) reuses compiled programs across calls."""
+    if method not in ("lm", "adam"):
+        raise SceneError(f"unknown design method {method!r}: 'lm' or 'adam'")
     n = move.a0.shape[0]
-    lever = float(jnp.max(jnp.linalg.norm(scene.end.attachment, axis=1))) if lever is None else lever
-
-    def residual(c):
-        r, code = vibration(scene, move, c.reshape(move.count, n), lever)
-        return r.reshape(-1), jnp.max(code)
-
-    res_fn = jax.jit(residual)
-    t0 = time.perf_counter()
+    progs = programs or MovePrograms(scene, default_lever(scene) if lever is None else lever)
+    tab = move_tables(scene, move)
     c = jnp.zeros(move.count * n)
-    r, code = res_fn(c)
+    t0 = time.perf_counter()
+    r, code = progs.residual(c, tab)
     compile_s = time.perf_counter() - t0
-    history = [float(jnp.sum(r**2))]
     if int(code) != 0:
         raise ConvergenceError("the plain move's rollout did not converge", 0.0)
     t1 = time.perf_counter()
     if method == "lm":
-        jac_fn = jax.jit(jax.jacfwd(lambda c: residual(c)[0]))
-        lam = 1e-3
-        for _ in range(iterations):
-            J = jac_fn(c)
-            g, H = J.T @ r, J.T @ J
-            while True:
-                step = -jnp.linalg.solve(H + lam * jnp.diag(jnp.diag(H) + 1e-30), g)
-                r_new, code = res_fn(c + step)
-                f_new = float(jnp.sum(r_new**2))
-                if int(code) == 0 and f_new < history[-1]:
-                    c, r, lam = c + step, r_new, max(lam / 10.0, 1e-12)
-                    break
-                lam *= 10.0
-                if lam > 1e8:
-                    break
-            history.append(float(jnp.sum(r**2)))
-            log(f"  LM {len(history) - 1}: sum of squares {history[-1]:.3e} m^2")
-            if lam > 1e8 or history[-1] > 0.999 * history[-2]:
-                break
-    elif method == "adam":
+        c, r, history = levenberg_marquardt(
+            lambda c: progs.residual(c, tab), lambda c: progs.jacobian(c, tab), c, iterations=iterations, log=log
+        )
+    else:
         import optax
 
-        scale = float(jnp.max(jnp.abs(move.a1 - move.a0)))
-        opt = optax.adam(1e-2 * scale)
+        history = [float(jnp.sum(r**2))]
+        opt = optax.adam(1e-2 * float(jnp.max(jnp.abs(move.a1 - move.a0))))
         state = opt.init(c)
-        grad_fn = jax.jit(jax.value_and_grad(lambda c: jnp.sum(residual(c)[0] ** 2)))
         for _ in range(iterations):
-            f, g = grad_fn(c)
+            _, g = progs.gradient(c, tab)
             upd, state = opt.update(g, state)
             c = optax.apply_updates(c, upd)
-            history.append(float(jnp.sum(res_fn(c)[0] ** 2)))
+            history.append(float(jnp.sum(progs.residual(c, tab)[0] ** 2)))
             log(f"  Adam {len(history) - 1}: sum of squares {history[-1]:.3e} m^2")
-    else:
-        raise SceneError(f"unknown design method {method!r}: 'lm' or 'adam'")
     return {
         "coefficients": c.reshape(move.count, n),
         "objective": history,
@@ -235,4 +266,5 @@ def verify(scene, move: Move, coeffs, finer: bool = True):
     if finer:
         s = scene.solver
         scene = with_solver(scene, nodes=2 * s.nodes, dt=float(s.dt) / 2.0)
-    return simulate(_driven(scene, move, jnp.asarray(coeffs)))
+    t = step_times(scene)
+    return simulate(with_actuator_table(scene, t, move.actuators(t, jnp.asarray(coeffs))))
