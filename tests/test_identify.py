@@ -183,6 +183,7 @@ def _check_fit(res, rec):
 
 
 SUITE = [f"{kind}_r{k}" for kind in ("triskele_push_release", "triskele_actuator_step", "cantilever_release") for k in (1, 2)]
+SUITE.append("cantilever_independent")  # made by experiments_data/independent_rod.py, not by pcrjax
 
 
 @pytest.mark.slow

@@ -11,7 +11,7 @@ from identify import camera
 from identify.recording import RecordingError, load_recording, write_recording
 
 DATA = Path(__file__).resolve().parent.parent / "experiments_data"
-SHIPPED = ["triskele_push_release", "triskele_actuator_step", "cantilever_release"]
+SHIPPED = ["triskele_push_release", "triskele_actuator_step", "cantilever_release", "cantilever_independent"]
 GOOD_SIDE = {"scene": "triskele", "experiment": "push_release", "frame_rate": 114.44, "exposure": 2e-4, "synthetic": False}
 
 
