@@ -63,7 +63,13 @@ class Level:
             reduced_chi2=self.chi2,
             chord_iterations=self.iterations,
             wall_s=round(self.wall_s, 1),
+            values={} if self.problem is None else _plain(self.problem.reported(self.theta)),
         )
+
+
+def _plain(values: dict) -> dict:
+    """Reported values as JSON numbers (scalars as floats, vectors as lists)."""
+    return {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in values.items()}
 
 
 def chord_refit(problem, theta, J, max_iter: int = CHORD_ITER, se_theta=None):
@@ -141,7 +147,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None):
     coarse = grids[-2] if len(grids) > 1 else None
     before = at_fit if coarse is None else coarse.problem.reported(coarse.theta)
     finest = grids[-1].problem.reported(grids[-1].theta)
-    values = {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in finest.items()}
+    values = _plain(finest)
     noise = np.sqrt(grids[-1].chi2 / result.loss)  # the residuals' scale on the finest grid vs the fit's
     worst = float(np.max(np.abs(grids[-1].move_se)))
     if worst > THIRD:

@@ -349,6 +349,12 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
         err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
         assert abs(res["values"][name] - truth[name]) < 3 * err, (name, res["values"][name], truth[name], err)
     assert res["model"]["nodes"] >= 12 and len(res["refinements"]) == 2  # tolerance, then one grid
+    # each refit's values are listed; the reported ones are the finest grid's, and their
+    # discretisation error is its move from the fit's own grid (the tolerance refit's neighbour)
+    grid, tol = res["refinements"][1], res["refinements"][0]
+    assert grid["values"] == res["values"] and set(tol["values"]) == set(res["values"])
+    move = abs(grid["values"]["lengths"] - tol["values"]["lengths"])
+    assert abs(move - res["discretisation_errors"]["lengths"]) <= 1.01 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
 

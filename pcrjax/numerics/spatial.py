@@ -15,7 +15,9 @@ the right-hand side is mapped over it inside the loop body, so the loop is trace
 whole `lax.scan` over legs traces and batches its body several times) and each kernel of a node
 step serves all legs. The scan supports multiple shooting: at the first node of each segment the
 carried state is replaced by that segment's unknown start state, and the state arriving there is
-returned so that the caller can form continuity residuals.
+returned so that the caller can form continuity residuals. Segments of equal length are not
+integrated one after the other but side by side, as extra legs of one shorter scan: every kernel
+of a node step then serves all segments, and the scan is M times shorter.
 """
 
 from __future__ import annotations
@@ -112,6 +114,38 @@ class Rods(eqx.Module):
     unroll: int = eqx.field(static=True, default=1)
 
 
+def _equal_segments(rods: Rods, segment_starts) -> int:
+    """The number of segments M if ``segment_starts`` split the N steps into M equal runs, else 0."""
+    if not segment_starts:
+        return 0
+    n_steps = rods.history.shape[1] - 1
+    M = len(segment_starts) + 1
+    return M if n_steps % M == 0 and tuple(segment_starts) == tuple(range(n_steps // M, n_steps, n_steps // M)) else 0
+
+
+def _side_by_side(rods: Rods, M: int) -> Rods:
+    """``rods`` (n legs of N steps) as n M legs of N / M steps: leg i's segment k becomes leg i M + k,
+    with the histories of its nodes (its end node included) and leg i's coefficients."""
+    n, n1 = rods.history.shape[:2]
+    L = (n1 - 1) // M
+    body = rods.history[:, :-1].reshape(n, M, L, -1)
+    ends = rods.history[:, L::L][:, :, None]  # nodes L, 2L, .., N: each segment's last node
+    history = jnp.concatenate([body, ends], axis=2).reshape(n * M, L + 1, -1)
+    stage_history = rods.stage_history.reshape((n * M, L) + rods.stage_history.shape[2:])
+    repeat = lambda a: jnp.repeat(a, M, axis=0)  # noqa: E731
+    return Rods(history, stage_history, jax.tree.map(repeat, rods.k), repeat(rods.ds), rods.effects, rods.integrator, rods.unroll)
+
+
+def _segment_starts(first, restarts, M: int):
+    """(n M, ...) start states of every segment: leg i's ``first`` (n, ...), then its ``restarts`` (n, M-1, ...)."""
+    return jax.tree.map(lambda a, r: jnp.concatenate([a[:, None], r], axis=1).reshape((-1,) + a.shape[1:]), first, restarts)
+
+
+def _per_segment(a, M: int):
+    """(n M, ...) -> (n, M, ...)."""
+    return a.reshape((-1, M) + a.shape[1:])
+
+
 def integrate(y0, rods: Rods, segment_starts=None, restarts=None, return_stages=False, all_nodes=True):
     r"""Integrate n legs from node 0 to node N.
 
@@ -129,6 +163,9 @@ def integrate(y0, rods: Rods, segment_starts=None, restarts=None, return_stages=
     nodes (after restarts; (n, 1, dim), the last, unless ``all_nodes``) and those (n, M-1, dim)
     arriving at each segment start before the restart (or None).
     """
+    M = _equal_segments(rods, segment_starts)
+    if M:
+        return _integrate_side_by_side(y0, rods, M, restarts, return_stages, all_nodes)
     F = _per_leg(lambda y, h, kk: rhs(y, h, kk, rods.effects), y0.shape[0])
     collect = all_nodes or return_stages or bool(segment_starts)
     y_last, outs = _scan(lambda y, h: F(y, h, rods.k), y0, rods, segment_starts, restarts, return_stages, collect)
@@ -139,6 +176,29 @@ def integrate(y0, rods: Rods, segment_starts=None, restarts=None, return_stages=
         stages = jnp.swapaxes(outs[2], 0, 1) if rods.integrator == "rk4" else jnp.zeros((n, n_steps, 0, y0.shape[1]), y0.dtype)
         return nodes, arrivals, stages
     return nodes, arrivals
+
+
+def _integrate_side_by_side(y0, rods: Rods, M: int, restarts, return_stages, all_nodes):
+    """`integrate` for M equal segments, run side by side (`_side_by_side`)."""
+    n, dim = y0.shape
+    seg = _side_by_side(rods, M)
+    F = _per_leg(lambda y, h, kk: rhs(y, h, kk, rods.effects), n * M)
+    collect = all_nodes or return_stages
+    y_last, outs = _scan(lambda y, h: F(y, h, seg.k), _segment_starts(y0, restarts, M), seg, None, None, return_stages, collect)
+    ends = _per_segment(y_last, M)  # (n, M, dim): each segment's last node
+    arrivals = ends[:, :-1]
+    if all_nodes:  # node j of segment k is node k L + j; each segment's end is the next one's arrival
+        entering = _per_segment(jnp.swapaxes(outs[0], 0, 1), M).reshape(n, -1, dim)
+        nodes = jnp.concatenate([entering, ends[:, -1:]], axis=1)
+    else:
+        nodes = ends[:, -1:]
+    if not return_stages:
+        return nodes, arrivals
+    if rods.integrator == "rk4":
+        stages = _per_segment(jnp.swapaxes(outs[2], 0, 1), M).reshape((n, -1) + outs[2].shape[2:])
+    else:
+        stages = jnp.zeros((n, rods.history.shape[1] - 1, 0, dim), y0.dtype)
+    return nodes, arrivals, stages
 
 
 def integrate_tangents(y0, Y0, rods: Rods, segment_starts=None, restarts=None, restart_tangents=None):
@@ -158,6 +218,15 @@ def integrate_tangents(y0, Y0, rods: Rods, segment_starts=None, restarts=None, r
         g = lambda z: rhs(z, h, kk, rods.effects)  # noqa: E731
         return jax.vmap(lambda t: jax.jvp(g, (y,), (t,)), out_axes=(None, 0))(Y)
 
+    M = _equal_segments(rods, segment_starts)
+    if M:
+        n = y0.shape[0]
+        seg = _side_by_side(rods, M)
+        F = _per_leg(one, n * M)
+        starts = _segment_starts((y0, Y0), (restarts, restart_tangents), M)
+        (y_end, Y_end), _ = _scan(lambda st, h: F(st[0], st[1], h, seg.k), starts, seg, None, None, False, False)
+        y_end, Y_end = _per_segment(y_end, M), _per_segment(Y_end, M)
+        return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1]
     F = _per_leg(one, y0.shape[0])
     state = (y0, Y0)
     collect = bool(segment_starts)

@@ -1,0 +1,57 @@
+"""Multiple shooting with equal segments integrates them side by side (one scan over N/M steps
+with the segments as extra legs). Each segment must be exactly the plain integration of that
+piece of rod from its own start state: nodes, RK4 stage points, arrivals and forward
+sensitivities, against the single-segment path run segment by segment."""
+
+import jax.numpy as jnp
+import numpy as np
+
+import pcrjax
+from pcrjax import simulation
+from pcrjax.bench.cases import cases
+from pcrjax.numerics import shooting, spatial
+from pcrjax.robots import dynamics
+
+
+def _piece(rods: spatial.Rods, a: int, b: int) -> spatial.Rods:
+    """The rods from node a to node b (steps a..b-1)."""
+    return spatial.Rods(
+        rods.history[:, a : b + 1], rods.stage_history[:, a:b], rods.k, rods.ds, rods.effects, rods.integrator, rods.unroll
+    )
+
+
+def test_equal_segments_side_by_side_are_the_pieces_integrated_one_by_one():
+    case = next(c for c in cases("cantilever") if c.label == "till")
+    scene = pcrjax.with_solver(case.scene, nodes=12, dt=2e-3, duration=4e-3, segments=4)
+    _, state = simulation._initial(scene)  # at rest the BDF-alpha histories hold -c0 times the strains: not zero
+    prob = dynamics._problem(scene, state, dynamics._coefficients(scene, state), state.a1, scene.solver.dt)
+    lay, rods = prob.layout, prob.rods
+    assert lay.segments == 4 and lay.starts == (3, 6, 9)
+    xl = prob.split(state.unknowns[0])[1] + 1e-3  # off the solution: the junctions do not close
+    restarts = shooting._restarts(lay, xl, prob.leg_R_ref, prob.sc)
+    y0 = shooting._starts(prob.y0, xl, prob.sc)
+    nodes, arrivals, stages = spatial.integrate(y0, rods, lay.starts, restarts, return_stages=True)
+
+    bounds = [0, *lay.starts, 12]
+    starts = [y0] + [restarts[:, k] for k in range(3)]
+    for k in range(4):
+        a, b = bounds[k], bounds[k + 1]
+        ref_nodes, _, ref_stages = spatial.integrate(starts[k], _piece(rods, a, b), return_stages=True)
+        scale = np.abs(np.asarray(ref_nodes)).max(axis=(0, 1)) + 1e-30
+        np.testing.assert_allclose(np.asarray(nodes[:, a:b]) / scale, np.asarray(ref_nodes[:, :-1]) / scale, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(stages[:, a:b]), np.asarray(ref_stages), rtol=1e-12, atol=1e-13 * scale.max())
+        end = arrivals[:, k] if k < 3 else nodes[:, -1]
+        np.testing.assert_allclose(np.asarray(end) / scale, np.asarray(ref_nodes[:, -1]) / scale, rtol=0, atol=1e-13)
+
+    # forward sensitivities: the last node's and the arrivals' tangents, piece by piece
+    C = 3
+    Y0 = jnp.asarray(np.random.default_rng(0).standard_normal((1, C, y0.shape[1]))) * 1e-3
+    RT = jnp.asarray(np.random.default_rng(1).standard_normal((1, 3, C, y0.shape[1]))) * 1e-3
+    y_last, Y_last, arr, arr_t = spatial.integrate_tangents(y0, Y0, rods, lay.starts, restarts, RT)
+    tangent_starts = [Y0] + [RT[:, k] for k in range(3)]
+    for k in range(4):
+        a, b = bounds[k], bounds[k + 1]
+        ref_y, ref_Y, _, _ = spatial.integrate_tangents(starts[k], tangent_starts[k], _piece(rods, a, b))
+        got_y, got_Y = (arr[:, k], arr_t[:, k]) if k < 3 else (y_last, Y_last)
+        np.testing.assert_allclose(np.asarray(got_y), np.asarray(ref_y), rtol=1e-12, atol=1e-14 * np.abs(ref_y).max())
+        np.testing.assert_allclose(np.asarray(got_Y), np.asarray(ref_Y), rtol=1e-10, atol=1e-12 * np.abs(ref_Y).max())
