@@ -55,3 +55,25 @@ def test_equal_segments_side_by_side_are_the_pieces_integrated_one_by_one():
         got_y, got_Y = (arr[:, k], arr_t[:, k]) if k < 3 else (y_last, Y_last)
         np.testing.assert_allclose(np.asarray(got_y), np.asarray(ref_y), rtol=1e-12, atol=1e-14 * np.abs(ref_y).max())
         np.testing.assert_allclose(np.asarray(got_Y), np.asarray(ref_Y), rtol=1e-10, atol=1e-12 * np.abs(ref_Y).max())
+
+
+def test_automatic_segments_are_equal_and_keep_the_conditioning():
+    """The automatic split gives equal segments (a divisor of the internal grid's steps), two at
+    least, never fewer than the conditioning asks (lambda l <= 6 per segment)."""
+    from pcrjax.numerics.shooting import SEGMENT_CONDITIONING
+    from pcrjax.numerics.solver import _divisor_at_least, auto_segments, boundary_layer_rate
+
+    assert [_divisor_at_least(40, m) for m in (1, 2, 3, 6, 7, 9, 21, 41)] == [1, 2, 4, 8, 8, 10, 40, 40]
+    # (grid steps, segments the conditioning needs) -> segments: two at least, equal where that
+    # costs at most twice the need, else the need unequal
+    cases_ = {(40, 1): 2, (20, 3): 4, (5, 1): 1, (3, 1): 1, (7, 2): 2, (50, 7): 10, (49, 5): 7, (47, 5): 5, (150, 1): 2}
+    assert {k: auto_segments(*k) for k in cases_} == cases_
+    case = next(c for c in cases("cantilever") if c.label == "thesis")
+    rod = case.scene.legs.rod
+    for nodes, dt in ((20, 1e-3), (21, 1e-4), (40, 1e-5), (50, 2e-5)):
+        s = pcrjax.with_solver(case.scene, nodes=nodes, dt=dt).solver
+        c0 = (1.5 - 0.4) / (dt * (1.0 - 0.4))  # BDF-alpha's c0 = (1.5 + alpha) / (dt (1 + alpha)), alpha -0.4
+        lam = float(boundary_layer_rate(rod.radius[0], rod.youngs_modulus[0], rod.shear_modulus[0], rod.density[0], c0))
+        steps = s.nodes * s.refine
+        assert steps % s.segments == 0 and s.segments >= 2, (nodes, dt, s)
+        assert lam * float(rod.length[0]) / s.segments <= SEGMENT_CONDITIONING, (nodes, dt, s)

@@ -5,7 +5,8 @@ For each case, dt and (integrator, N): wall time per step after compilation, rea
 iterations and Jacobians per step, the end's position error against a converged reference (max
 over time; ``rel err``: over the reference's largest displacement), the internal grid
 (nodes x shooting segments) and the XLA:CPU kernels one RK4/Euler node step runs
-(`kernels.node_step_kernels`): on this backend each kernel costs a fixed overhead, so this count
+(`kernels.node_step_kernels`) and one residual runs (that times the scan's length: N, or N/M for
+M equal segments side by side): on this backend each kernel costs a fixed overhead, so this count
 is the lever on per-step time. ``--noise`` (Stewart-Gough) adds thesis Tables 4.3-4.4; ``--gradient`` the cost of a reverse-mode
 gradient through a rollout (`gradient.py`); ``inverse`` times inverse dynamics (`inverse.py`), ``design`` trajectory design (`design.py`),
 ``batch`` batched rollouts against a loop of single runs (`batch.py`).
@@ -27,8 +28,15 @@ from .kernels import node_step_kernels
 
 HEADER = (
     f"{'case':<15}{'int':<6}{'N':>5}{'dt s':>10}{'us/step':>11}{'RTF':>8}{'compile s':>11}{'Newton it':>11}{'Jac/step':>10}"
-    f"{'pos err m':>12}{'rel err':>10}{'rot err rad':>13}{'grid':>9}{'kern/node':>11}"
+    f"{'pos err m':>12}{'rel err':>10}{'rot err rad':>13}{'grid':>9}{'kern/node':>11}{'kern/resid':>11}"
 )
+
+
+def scan_steps(solver) -> int:
+    """Node steps of one residual's scan: the internal grid, or one segment of it where the
+    segments are equal (they run side by side)."""
+    n, m = solver.grid_nodes, solver.segments
+    return n // m if n % m == 0 else n
 
 
 def noise(position) -> float:
@@ -63,6 +71,7 @@ def _row(label, scene, tr, tm, compile_s, ref, kernels):
         internal_nodes=s.grid_nodes,
         segments=s.segments,
         kernels_per_node_step=kernels,
+        kernels_per_residual=kernels * scan_steps(s),
         tol=s.newton.tol,
     )
 
@@ -72,7 +81,8 @@ def _print(row):
     print(
         f"{row['case']:<15}{row['integrator']:<6}{row['nodes']:>5}{row['dt']:>10.3g}{row['us_per_step']:>11.1f}{row['realtime_factor']:>8.2f}"
         f"{row['compile_s']:>11.2f}{row['newton_iterations']:>11.2f}{row['jacobians_per_step']:>10.2f}{row['position_error_m']:>12.3e}"
-        f"{row['relative_error']:>10.2e}{row['rotation_error_rad']:>13.3e}{grid:>9}{row['kernels_per_node_step']:>11}",
+        f"{row['relative_error']:>10.2e}{row['rotation_error_rad']:>13.3e}{grid:>9}{row['kernels_per_node_step']:>11}"
+        f"{row['kernels_per_residual']:>11}",
         flush=True,
     )
 

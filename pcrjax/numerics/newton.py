@@ -33,20 +33,20 @@ def _power_of_two(x):
 
 
 class Jacobian(eqx.Module):
-    """A dense Jacobian with the LU factors of its equilibrated form, carried between Newton calls.
+    """A dense Jacobian and its inverse, carried between Newton calls.
 
-    Rows, then columns, are scaled by powers of two to unit max-norm before factoring
-    (``D_r J D_c = LU``). Scaling the unknowns and residuals by physical units (`shooting.Scales`)
-    leaves entries of 1e6-1e7 where stiff axial rods meet a light platform under large $c_0^2$;
-    equilibration cut the condition number of the Triskele-bot's step Jacobian from 7e12 to 7e5,
-    and with it the round-off of each Newton direction.
+    The inverse comes from the LU factors of the equilibrated matrix: rows, then columns, are
+    scaled by powers of two to unit max-norm first (``D_r J D_c = LU``, so
+    ``J^{-1} = D_c (LU)^{-1} D_r``). Scaling the unknowns and residuals by physical units
+    (`shooting.Scales`) leaves entries of 1e6-1e7 where stiff axial rods meet a light platform
+    under large $c_0^2$; equilibration cut the condition number of the Triskele-bot's step
+    Jacobian from 7e12 to 7e5, and with it the round-off of each Newton direction. Holding the
+    inverse makes a direction one matrix-vector product and a Broyden update O(n^2)
+    (Sherman-Morrison) instead of a new factorisation, O(n^3), at every iteration.
     """
 
     matrix: jnp.ndarray
-    lu: jnp.ndarray
-    piv: jnp.ndarray
-    row: jnp.ndarray
-    col: jnp.ndarray
+    inverse: jnp.ndarray
 
     @classmethod
     def factor(cls, J):
@@ -54,7 +54,7 @@ class Jacobian(eqx.Module):
         Jr = J * row[:, None]
         col = 1.0 / _power_of_two(jnp.max(jnp.abs(Jr), axis=0))
         lu, piv = jsl.lu_factor(Jr * col[None, :])
-        return cls(J, lu, piv, row, col)
+        return cls(J, col[:, None] * jsl.lu_solve((lu, piv), jnp.diag(row)))
 
     @classmethod
     def empty(cls, size, dtype=jnp.float64):
@@ -62,7 +62,18 @@ class Jacobian(eqx.Module):
 
     def solve(self, b):
         """$J^{-1} b$."""
-        return self.col * jsl.lu_solve((self.lu, self.piv), self.row * b)
+        return self.inverse @ b
+
+    def broyden(self, step, change):
+        """Broyden's ("good") rank-one update after a ``step`` that changed the residual by
+        ``change``: ``J + (change - J step) step^T / step^T step``, and its inverse by
+        Sherman-Morrison. An update that would make the matrix (nearly) singular is not made."""
+        u = (change - self.matrix @ step) / jnp.dot(step, step)
+        Hu = self.inverse @ u
+        denom = 1.0 + jnp.dot(step, Hu)
+        ok = jnp.abs(denom) > 1e-8
+        inverse = self.inverse - jnp.outer(Hu, step @ self.inverse) / jnp.where(ok, denom, 1.0)
+        return Jacobian(jnp.where(ok, self.matrix + jnp.outer(u, step), self.matrix), jnp.where(ok, inverse, self.inverse))
 
 
 class Stats(eqx.Module):
@@ -196,11 +207,9 @@ def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
     forced = give_up & st.fresh & finite
     move = ok | forced
     # Broyden's ("good") rank-one update keeps reused Jacobians accurate: superlinear
-    # convergence without re-evaluating the Jacobian. Refactoring is cheap next to a residual.
+    # convergence without re-evaluating the Jacobian.
     step_x = lam * dx
     upd = move & started & (jnp.dot(step_x, step_x) > 0) & settings.broyden
-    J = st.jac.matrix
-    J_b = J + jnp.outer(r_t - r - J @ step_x, step_x) / jnp.where(upd, jnp.dot(step_x, step_x), 1.0)
     # Next pass: after a move or a failed search, a new direction (lam = 1); else backtrack.
     need_new = jnp.where(move & started, (nrm_t > settings.refresh_ratio * nrm) | forced, st.need) | give_up
     searched = (move | give_up) & started
@@ -234,7 +243,7 @@ def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
         trial_finite=finite,
         finished=finished,
     )
-    return nxt, J_b, upd
+    return nxt, (step_x, r_t - r), upd
 
 
 JAC_CHUNK = 4  # members whose Jacobians a batched solve evaluates together
@@ -261,7 +270,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     members (indices into the batch, one row of ``x`` and ``s`` each). The members' decisions
     stay their own: Jacobians are evaluated only for the members that ask for one, `JAC_CHUNK`
     at a time (a batched Jacobian costs in proportion to its members, and in a large batch a
-    few members refresh in most passes); a Broyden update is factored when some member takes
+    few members refresh in most passes); Broyden updates are made when some member takes
     one. The loop runs until every member has finished; a finished member's state is held.
     """
     per = jax.vmap if batched else (lambda f: f)
@@ -297,10 +306,11 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
         st = eqx.tree_at(lambda t: (t.jac, t.fresh, t.nj), st, (jac, st.fresh | refresh, st.nj + jnp.where(refresh, 1, 0)))
         dx, x_t = per(_trial)(st)
         r_t = fn(x_t, s)
-        nxt, J_b, upd = per(lambda a, b, c, d: _accept(a, b, settings, c, d))(st, stages, dx, r_t)
+        nxt, (step_x, change), upd = per(lambda a, b, c, d: _accept(a, b, settings, c, d))(st, stages, dx, r_t)
         if batched:
             upd = upd & ~st.finished
-        nxt = eqx.tree_at(lambda t: t.jac, nxt, maybe(upd, lambda: per(Jacobian.factor)(J_b), nxt.jac))
+        updated = lambda: per(lambda j, a, b: j.broyden(a, b))(st.jac, step_x, change)  # noqa: E731
+        nxt = eqx.tree_at(lambda t: t.jac, nxt, maybe(upd, updated, nxt.jac))
         return _where(st.finished, st, nxt) if batched else nxt
 
     init = per(_initial_state)(jac0, stages)
