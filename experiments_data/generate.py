@@ -295,12 +295,7 @@ def generate_independent(name: str, spec: dict, out_dir: Path) -> Path:
     keep = rng.random(t_frames.size) >= truth["missing_fraction"]
     keep[0] = True
     side = dict(
-        scene=spec["scene"],
-        experiment=spec["experiment"],
-        frame_rate=spec["frame_rate"],
-        exposure=spec["exposure"],
-        synthetic=True,
-        description=spec["description"],
+        _sidecar_head(spec),
         truth=dict(truth),
         provenance=dict(
             generator="experiments_data/generate.py",
@@ -322,15 +317,14 @@ CAMERA_TRUTH = ("frame_offset", "frame_rotation", "time_offset")
 SENSOR = ("noise_position", "noise_angle", "missing_fraction", "seed")
 
 
+def _sidecar_head(spec: dict) -> dict:
+    """The sidecar's top-level keys of a synthetic recording."""
+    head = {k: spec[k] for k in ("scene", "experiment", "frame_rate", "exposure")}
+    return dict(head, synthetic=True, description=spec["description"])
+
+
 def sidecar(name: str, spec: dict) -> dict:
-    side = dict(
-        scene=spec["scene"],
-        experiment=spec["experiment"],
-        frame_rate=spec["frame_rate"],
-        exposure=spec["exposure"],
-        synthetic=True,
-        description=spec["description"],
-    )
+    side = _sidecar_head(spec)
     for table in OVERRIDES:
         if table in spec:
             side[table] = dict(spec[table])
