@@ -59,7 +59,7 @@ def test_equal_segments_side_by_side_are_the_pieces_integrated_one_by_one():
 
 def test_automatic_segments_are_equal_and_keep_the_conditioning():
     """The automatic split gives equal segments (a divisor of the internal grid's steps), two at
-    least, never fewer than the conditioning asks (lambda l <= 6 per segment)."""
+    least for a single rod, never fewer than the conditioning asks (lambda l <= 6 per segment)."""
     from pcrjax.numerics.shooting import SEGMENT_CONDITIONING
     from pcrjax.numerics.solver import _divisor_at_least, auto_segments, boundary_layer_rate
 
@@ -68,6 +68,8 @@ def test_automatic_segments_are_equal_and_keep_the_conditioning():
     # costs at most twice the need, else the need unequal
     cases_ = {(40, 1): 2, (20, 3): 4, (5, 1): 1, (3, 1): 1, (7, 2): 2, (50, 7): 10, (49, 5): 7, (47, 5): 5, (150, 1): 2}
     assert {k: auto_segments(*k) for k in cases_} == cases_
+    # several legs: only what the conditioning needs, equal where it can be
+    assert [auto_segments(50, 1, 3), auto_segments(20, 3, 6), auto_segments(47, 5, 3)] == [1, 4, 5]
     case = next(c for c in cases("cantilever") if c.label == "thesis")
     rod = case.scene.legs.rod
     for nodes, dt in ((20, 1e-3), (21, 1e-4), (40, 1e-5), (50, 2e-5)):

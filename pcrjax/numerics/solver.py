@@ -81,14 +81,16 @@ def _divisor_at_least(n: int, m: int) -> int:
     return next((d for d in range(max(1, m), n + 1) if n % d == 0), n)
 
 
-def auto_segments(steps: int, need: int) -> int:
-    """Shooting segments for a grid of ``steps`` node steps whose conditioning needs ``need``:
-    at least two (where the grid has four steps or more), equal, so that they run side by side:
-    the smallest divisor of ``steps`` from there, unless that is more than twice as many, when
-    the ``need`` unequal segments run one after the other. Two equal segments side by side run
-    a step 1.2-1.4x faster than one (half the scan, a better conditioned Jacobian, fewer
-    refreshes); more cost more in the Newton's dense algebra than they save in the scan."""
-    want = max(need, 2) if steps >= 4 else need
+def auto_segments(steps: int, need: int, legs: int = 1) -> int:
+    """Shooting segments for a grid of ``steps`` node steps whose conditioning needs ``need``,
+    equal so that they run side by side: the smallest divisor of ``steps`` from ``need``,
+    unless that is more than twice as many, when the ``need`` unequal segments run one after
+    the other. A single rod (``legs`` 1) takes two at least (where the grid has four steps or
+    more): a step then runs 1.4-1.7x faster than with one (half the scan, a better conditioned
+    Jacobian, fewer refreshes). A robot of several legs does not: each segment adds 18 unknowns
+    per leg to the Newton's dense algebra, and the Triskele's and the Stewart-Gough's steps ran
+    1.2-1.4x slower with two."""
+    want = max(need, 2) if steps >= 4 and legs == 1 else need
     d = _divisor_at_least(steps, want)
     return d if d <= 2 * want else min(need, steps)
 
@@ -108,7 +110,8 @@ def make_solver(
     refine = max(1, int(np.ceil(lam * L / nodes / REFINED_SPACING)))
     auto = segments == "auto"
     if auto:
-        segments = auto_segments(nodes * refine, max(1, math.ceil(lam * L / SEGMENT_CONDITIONING)))
+        legs = int(np.shape(rod.length)[0]) if np.ndim(rod.length) else 1
+        segments = auto_segments(nodes * refine, max(1, math.ceil(lam * L / SEGMENT_CONDITIONING)), legs)
     elif refine > 1 and segments > 1:
         segments = segments * refine
     return Solver(
