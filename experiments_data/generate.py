@@ -250,20 +250,42 @@ INDEPENDENT = {
 }
 
 
+def film(path: Path, samples, dt: float, t_frames, exposure: float, truth: dict, side: dict):
+    """Film the planar motion ``samples`` (T, 3), taken every ``dt`` s, with the camera model at
+    ``t_frames`` and ``truth``'s frame, delay, noise and missing frames (seeded), write it to
+    ``path`` with the sidecar ``side``, and return it as users will load it."""
+    clean = camera.observe(
+        jnp.asarray(samples),
+        dt,
+        jnp.asarray(t_frames),
+        exposure,
+        jnp.asarray(truth["frame_offset"], jnp.float64),
+        jnp.asarray(truth["frame_rotation"], jnp.float64),
+        jnp.asarray(truth["time_offset"], jnp.float64),
+    )
+    rng = np.random.default_rng(truth["seed"])
+    noise = rng.standard_normal(clean.shape) * np.array([truth["noise_position"], truth["noise_position"], truth["noise_angle"]])
+    keep = rng.random(t_frames.size) >= truth["missing_fraction"]
+    keep[0] = True
+    write_recording(path, t_frames[keep], np.asarray(clean)[keep] + noise[keep], side)
+    return load_recording(path, require_sidecar=True)
+
+
 def independent_rod(scene, truth: dict, nodes: int):
     """The planar rod of `independent_rod.py` for a rod ``scene`` (its material, gravity and base
     direction) with ``truth``'s length and damping time."""
     from independent_rod import PlanarRod
 
     rod = scene.legs.rod
+    one = lambda a: float(np.asarray(a).ravel()[0])  # noqa: E731  (the scene's one leg)
     direction = np.asarray(scene.legs.base_rotation[0])[:, 2]
     g = np.asarray(scene.gravity) if scene.effects.gravity else np.zeros(3)
     return PlanarRod(
         length=float(truth["lengths"]),
-        radius=float(np.asarray(rod.radius).ravel()[0]),
-        youngs_modulus=float(np.asarray(rod.youngs_modulus).ravel()[0]),
-        shear_modulus=float(np.asarray(rod.shear_modulus).ravel()[0]),
-        density=float(np.asarray(rod.density).ravel()[0]),
+        radius=one(rod.radius),
+        youngs_modulus=one(rod.youngs_modulus),
+        shear_modulus=one(rod.shear_modulus),
+        density=one(rod.density),
         tau=float(truth["tau"]),
         gravity=(float(g[0]), float(g[2])),
         base_angle=float(np.arctan2(direction[2], direction[0])),
@@ -281,19 +303,6 @@ def generate_independent(name: str, spec: dict, out_dir: Path) -> Path:
     t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
     span = spec["seconds"] + truth["time_offset"] + spec["exposure"] + 2 * grid["sample_dt"]
     _, tip, nfev = rod.release((fx, fz), span, grid["sample_dt"], rtol=grid["rtol"], atol=grid["atol"])
-    clean = camera.observe(
-        jnp.asarray(tip),
-        grid["sample_dt"],
-        jnp.asarray(t_frames),
-        spec["exposure"],
-        jnp.asarray(truth["frame_offset"]),
-        jnp.asarray(truth["frame_rotation"]),
-        jnp.asarray(truth["time_offset"]),
-    )
-    rng = np.random.default_rng(truth["seed"])
-    noise = rng.standard_normal(clean.shape) * np.array([truth["noise_position"], truth["noise_position"], truth["noise_angle"]])
-    keep = rng.random(t_frames.size) >= truth["missing_fraction"]
-    keep[0] = True
     side = dict(
         _sidecar_head(spec),
         truth=dict(truth),
@@ -307,8 +316,7 @@ def generate_independent(name: str, spec: dict, out_dir: Path) -> Path:
         ),
     )
     path = out_dir / f"{name}.csv"
-    write_recording(path, t_frames[keep], np.asarray(clean)[keep] + noise[keep], side)
-    back = load_recording(path, require_sidecar=True)
+    back = film(path, tip, grid["sample_dt"], t_frames, spec["exposure"], truth, side)
     print(f"{path}: {back.frames} frames, tip swings {np.ptp(back.pose[:, 0]) * 1e3:.3g} mm, {np.ptp(back.pose[:, 2]):.3g} rad")
     return path
 
@@ -341,7 +349,6 @@ def sidecar(name: str, spec: dict) -> dict:
 def generate(name: str, spec: dict, out_dir: Path) -> Path:
     side = sidecar(name, spec)
     truth = spec["truth"]
-    rng = np.random.default_rng(truth["seed"])
     t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
     rec = Recording(
         path=out_dir / f"{name}.csv",
@@ -361,21 +368,8 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
     params = {k: jnp.asarray(v, jnp.float64) for k, v in truth.items() if k not in SENSOR}
     s = experiment.apply(scene, params)
     traj = pcrjax.simulate(s, progress=True)
-    clean = camera.observe(
-        experiment.planar_pose(s, traj),
-        s.solver.dt,
-        jnp.asarray(t_frames),
-        spec["exposure"],
-        params["frame_offset"],
-        params["frame_rotation"],
-        params["time_offset"],
-    )
-    noise = rng.standard_normal(clean.shape) * np.array([truth["noise_position"], truth["noise_position"], truth["noise_angle"]])
-    keep = rng.random(t_frames.size) >= truth["missing_fraction"]
-    keep[0] = True
     path = out_dir / f"{name}.csv"
-    write_recording(path, t_frames[keep], np.asarray(clean)[keep] + noise[keep], side)
-    back = load_recording(path, require_sidecar=True)  # what users will load
+    back = film(path, experiment.planar_pose(s, traj), s.solver.dt, t_frames, spec["exposure"], truth, side)
     print(
         f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
         f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad"

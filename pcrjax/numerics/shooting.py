@@ -6,8 +6,9 @@ $\\delta t = 10^{-5}$ s the thesis cantilever has $\\lambda L \\approx 107$ ($10
 float64 Newton can solve, and which is why the thesis failed at $\\delta t \\le 1$ ms. pcrjax
 therefore splits the rod into segments of $\\lambda \\ell \\lesssim 6$ (`solver.make_solver`), each
 with its own start state as unknowns, and adds continuity residuals. At the usual step sizes
-one segment (plain single shooting, 6 unknowns) would do; the automatic split still takes two
-equal ones, which `spatial.integrate` runs side by side (a scan half as long, 24 unknowns).
+one segment (plain single shooting, 6 unknowns) is enough; a single rod still takes two equal
+ones, which `spatial.integrate` runs side by side (a scan half as long, 24 unknowns), while a
+robot of several legs keeps one (`solver.auto_segments`).
 
 Unknowns are scaled: positions by L, forces by $F_c = EI/L^2$, moments by $F_c L$, linear
 velocities by $L c_0$ and angular velocities by $c_0$ (a change of one step's displacement);
