@@ -17,9 +17,13 @@ were estimated from the fit's residuals, which hold the coarse grid's model erro
 the standard errors are rescaled by the finest grid's reduced chi-square (one factor for all
 columns), so the standard errors are the noise's alone.
 
-Each refit holds the fit's Jacobian (the chord method: Gauss-Newton with the Jacobian of the
-coarse model): a finer grid moves the residuals by far more than their derivatives, so an
-iteration costs one forward rollout on the finer grid and no tangents.
+Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
+the coarse model, each step taken only where it lowers the cost): a finer grid moves the
+residuals by far more than their derivatives, so an iteration costs one forward rollout on the
+finer grid and no tangents. A grid refit runs over the fit's windows of growing length, since
+the coarse answer can be cycles of phase off the finer grid's over a whole recording. A refit
+that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it is
+reported as failed and its values are not used.
 """
 
 from __future__ import annotations
@@ -29,12 +33,13 @@ import time
 
 import numpy as np
 
-from .least_squares import FitError, standard_errors_theta
+from .least_squares import FitError, levenberg_marquardt, standard_errors_theta
 
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
-CHORD_ITER = 6
-STILL = 0.05  # a chord step below this fraction of every standard error ends the refit
+CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
+STILL = 0.05  # a refit ends when a step gains less than a parameter this many standard errors off
+WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,29 +77,42 @@ def _plain(values: dict) -> dict:
     return {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in values.items()}
 
 
-def chord_refit(problem, theta, J, max_iter: int = CHORD_ITER, se_theta=None):
+def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER):
     """(theta, cost, iterations) minimising ``problem``'s residuals over the whole recording
-    from ``theta`` with the Jacobian ``J`` held (of another discretisation of the same
-    problem). Stops when no unknown moves by more than ``STILL`` of its standard error
-    ``se_theta`` (1e-6 in theta if None). Raises `FitError` where the refined model's rollout
-    fails."""
+    from ``theta`` with the Jacobian ``J`` held (of another discretisation of the same problem):
+    Levenberg-Marquardt steps with that Jacobian, each taken only where it lowers the cost, over
+    windows ending at ``window_ends`` (the fit's continuation: a coarse grid's answer can be
+    cycles of phase off over a long recording, as the Triskele's 150 Hz modes are at dt 0.5 ms),
+    each from the previous one's answer. The whole recording's refit stops when a step lowers
+    the cost by less than a parameter ``STILL`` standard errors off the optimum would add.
+    Raises `FitError` where the refined model's rollout fails."""
     theta = np.asarray(theta, float)
-    floor = 1e-6 if se_theta is None else STILL * np.maximum(se_theta, 1e-12)
-    for it in range(1, max_iter + 1):
-        r = np.asarray(problem.residual(theta))
-        if not np.all(np.isfinite(r)):
+    total = 0
+    for t_end in window_ends:
+        rows = np.repeat(np.asarray(problem.window(t_end)[0]) > 0, 3)
+        held = J * rows[:, None]
+        last = {}
+
+        def residual(x, t_end=t_end, last=last):
+            x = np.asarray(x, float)
+            if last.get("x") is None or not np.array_equal(last["x"], x):  # the accepted trial's rollout is reused
+                last["x"], last["r"] = x, np.asarray(problem.residual(x, t_end))
+            return last["r"]
+
+        r0 = residual(theta)
+        if not np.all(np.isfinite(r0)):
             raise FitError(
                 f"the model with {problem.scene.solver.nodes} nodes, dt {float(problem.scene.solver.dt):.3g} s does not converge"
             )
-        step = np.linalg.lstsq(J, -r, rcond=None)[0]
-        theta = theta + step
-        if np.all(np.abs(step) <= floor):
-            break
-    r = np.asarray(problem.residual(theta))
-    return theta, 0.5 * float(r @ r), it
+        ftol = 1e-6 if t_end is not None else 0.5 * STILL**2 / max(0.5 * float(r0 @ r0), 1e-300)
+        theta, _, r, it, _, _ = levenberg_marquardt(
+            residual, lambda x, residual=residual: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step
+        )
+        total += it
+    return theta, 0.5 * float(r @ r), total
 
 
-def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0):
+def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,)):
     """(the `Level` list: the tolerance refit first, then the grids; the failures: a refit whose
     rollout failed ends the list) for the fit ``problem`` at its optimum ``theta`` (Jacobian
     ``J``, standard errors ``se_theta`` of theta at its reduced chi-square ``chi2``, its noise
@@ -112,11 +130,17 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} (discretisation error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
         try:
-            th, cost, it = chord_refit(fine, base_theta, J, se_theta=se_theta)
+            th, cost, it = chord_refit(fine, base_theta, J, window_ends if what == "grid" else (None,))
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
             break
         chi2_here = 2 * cost / max(m, 1)
+        if chi2_here > WORSE * chi2:  # a finer model fits worse than the coarse one: a wrong minimum
+            failed.append(
+                f"the refit with {n} nodes, dt {h:.3g} s reached a reduced chi-square of {chi2_here:.3g} against the fit's "
+                f"{chi2:.3g}: it did not find that grid's optimum, so its discretisation error is not measured"
+            )
+            break
         move = (th - base_theta) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
         levels.append(Level(what, n, h, tl, th, move, chi2_here, it, time.perf_counter() - t0, fine))
         if progress is not None:
@@ -133,12 +157,14 @@ def _difference(a: dict, b: dict) -> dict:
     return {k: (np.abs(a[k] - b[k]).tolist() if a[k].size > 1 else float(abs(a[k] - b[k])[0])) for k in a}
 
 
-def report(problem, theta, J, result, max_levels: int = 2, progress=None):
+def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,)):
     """``result`` (the `fit.Result` of ``problem`` at ``theta``, Jacobian ``J``) with the values
     of the finest model evaluated by `refine`, their discretisation and tolerance errors, the
     model they come from and the refits made; its message says when the last refinement still
     moved a value by more than a third of its standard error."""
-    levels, failed = refine(problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss)
+    levels, failed = refine(
+        problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends
+    )
     message = " ".join([result.message, *failed]).strip()
     if len(levels) < 2:  # no grid refinement came through: the fit's own values, no error measured
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)

@@ -2,8 +2,9 @@ r"""Fit a recording: a modal start, then Levenberg-Marquardt on the weighted fra
 (`problem.Problem`) over windows of growing length, then the model error of the answer
 (`discretisation`).
 
-**Start.** `modal_start`: candidate damping and lengths whose modes (or static response to an
-actuator move) match the recording's (`start`), ranked by a short time-domain fit of the push
+**Start.** `modal_start`: candidate damping and lengths whose lumped free motion (a planar
+platform's released push, `platform_screen`), modes or static response to an actuator move
+match the recording's (`start`), ranked by a short time-domain fit of the push
 and the camera. From nominal lengths a time-domain fit falls into a wrong minimum: on the
 Triskele-bot 2 % of rod length moves the modes from 86-155 Hz to 19-84 Hz.
 
@@ -46,7 +47,7 @@ def modal_start(
     warm=None,
 ):
     """Start values of damping and lengths (`start.initial_lengths`: the candidates whose
-    features match the recording's), ranked by the loss over the first ``rank_window`` seconds
+    lumped free motion, modes or static response match the recording's), ranked by the loss over the first ``rank_window`` seconds
     after the forcing with the push and the camera fitted (a rollout per push component,
     `Problem.fit_linear`); the ``screen_best`` best are screened by a short Levenberg-Marquardt
     fit of all unknowns on the first ``screen_window`` seconds, which mode shapes and amplitudes
@@ -293,6 +294,12 @@ def fit(
     )
     if refine_levels > 0:
         result = discretisation.report(
-            pb, theta, J, result, refine_levels, None if progress is None else (lambda msg: progress(msg, 0, None, 0.0))
+            pb,
+            theta,
+            J,
+            result,
+            refine_levels,
+            None if progress is None else (lambda msg: progress(msg, 0, None, 0.0)),
+            window_ends=[w for _, w in stages[:-1]],
         )
     return dataclasses.replace(result, wall_s=time.perf_counter() - t0)

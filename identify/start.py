@@ -2,20 +2,19 @@ r"""Start values of damping and lengths: a screen of the prior, feature matching
 
 An oscillating recording's loss has a minimum every cycle of phase error, so a fit started from
 nominal rod lengths lands in a wrong minimum (on the Triskele-bot 2 % of rod length moves the
-platform modes from 86-155 Hz to 19-84 Hz). Features that do not depend on the phase, the
-amplitude, the push or the camera's frame and clock locate the basin first:
+platform modes from 86-155 Hz to 19-84 Hz). A planar platform's free motion (a push released) is screened in the time domain against its
+lumped modes (`platform_screen`: statics only, every frame compared as filmed). Elsewhere,
+features that do not depend on the phase, the amplitude, the push or the camera's frame and
+clock locate the basin first:
 
-* **free motion** (a push or tip load released): the frequencies of the strongest oscillations
+* **a rod's free motion** (a tip load released): the frequencies of the strongest oscillations
   the camera shows. They are compared *as the camera shows them*: the model's frequencies,
-  measured on its own finely sampled motion, are folded at the frame rate (`modes.fold`) and
-  matched to the recorded ones, so no guess of how the recording aliased is needed. Nonlinear
-  harmonics (a cantilever's axial swing at twice the bending frequency) are in both.
+  measured on its own finely sampled motion (a short simulated release), are folded at the
+  frame rate (`modes.fold`) and matched to the recorded ones, so no guess of how the recording
+  aliased is needed. Nonlinear harmonics (the axial swing at twice the bending frequency) are in
+  both.
 * **after an actuator move**: the static response to the move (`static_shift`), smooth in the
   lengths and without a rollout.
-
-For planar platforms the model's modes come from a lumped model (`platform_modes`: the static
-compliance and the platform's inertia; the rods weigh 1e-5 of the platform), a few milliseconds
-per set of lengths; for a rod, from a short simulated release.
 
 The stages (`initial_lengths`):
 
@@ -52,10 +51,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import pcrjax
 from pcrjax.robots.signals import Actuation
 
-from . import experiment, modes
+from . import experiment, modes, platform_screen
+from .platform_screen import planar_rest
 from .recording import RecordingError
 
 PRIOR_LENGTH = 2e-3  # m: each rod within this of its nominal length
@@ -90,12 +89,6 @@ def frame_invariant(shift):
     """(|displacement|, |rotation|) of a change ``shift`` (3,) of planar pose: the same in every
     pattern frame."""
     return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
-
-
-def planar_rest(scene):
-    """(x, y, theta of the static equilibrium at t = 0, whether its solve converged)."""
-    st = pcrjax.solve_static(scene, throw=False)
-    return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
 
 
 def static_shift(scene):
@@ -153,9 +146,7 @@ class Features:
             self.recorded = np.concatenate([f[: self.n_freq], shape[: self.n_shape]])
             w = s / np.sum(s[: self.n_freq])
             self.weights = np.concatenate([w[: self.n_freq], SHAPE_WEIGHT * w[: self.n_shape]])
-        lumped = not self.actuated and not experiment.is_rod(problem.scene) and bool(problem.scene.effects.planar)
-        self._lumped = platform_modes(problem.scene) if lumped else None
-        self.static = self.actuated or lumped  # features from static solves (no simulation)
+        self.static = self.actuated  # features from static solves (no simulation)
         # the model's simulated modes at theta's damping (the discretised damping moves frequencies too)
         damping = [np.exp(self.theta[sl]) for sl in problem.damping]
         self.tau_sim = float(np.mean(np.concatenate(damping))) if damping else None
@@ -188,12 +179,8 @@ class Features:
             return None
 
     def modes_at(self, x):
-        """(frequencies Hz, shapes m/rad) of the model's modes at log lengths ``x``: a planar
-        platform's three lumped modes (`platform_modes`), or the oscillations of a simulated
-        release (a rod: its modes are its own); NaN where the model fails."""
-        if self._lumped is not None:
-            f, shape = self._lumped(jnp.asarray(x))
-            return np.asarray(f), np.asarray(shape)
+        """(frequencies Hz, shapes m/rad) of the oscillations of the model's simulated release at
+        log lengths ``x`` (a rod: its modes are its own); NaN where the model fails."""
         sim = self.simulated(x)
         if sim is None or sim[0].size == 0:
             return np.full(1, np.nan), np.full(1, np.nan)
@@ -266,8 +253,18 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     """(theta with damping and lengths started from the recording's features, the candidates
     (log lengths) worth ranking in the time domain, best first). See the module's text."""
     theta = np.array(theta, float)
-    feats = Features(problem, theta)
     say = _sayer(progress)
+    scene = problem.scene
+    if experiment.forcing_end(scene) <= 0.0 and not experiment.is_rod(scene) and bool(scene.effects.planar):
+        # a planar platform's free motion: its lumped modes against the frames themselves
+        i_len = problem.slices["lengths"]
+        if np.any(np.exp(theta[i_len]) <= prior_length):
+            raise RecordingError(f"prior: lengths {np.exp(theta[i_len]).tolist()} m cannot vary by ±{prior_length:g} m")
+        log_tau, found = platform_screen.screen(problem, theta, i_len, say, prior_length, TAU_RANGE, seed, warm)
+        theta = _set_damping(problem, theta, float(np.exp(log_tau))) if problem.damping else theta
+        theta[i_len] = found[0]
+        return theta, found
+    feats = Features(problem, theta)
     say(f"start: recorded {feats.describe()}")
     x0 = theta[feats.i_len]
     L0 = np.exp(x0)
@@ -371,35 +368,3 @@ def initial_tau(problem, theta, progress=None):
     if not problem.damping:
         return theta
     return _with_tau(problem, Features(problem, theta), theta, None, _sayer(progress))
-
-
-def platform_modes(scene):
-    """Jitted ``log lengths -> (frequencies Hz (3,), shapes (3,))`` of a planar platform's three
-    modes about its rest (no load), the rods' mass neglected (a rod weighs 1e-5 of the
-    platform): the stiffness is the inverse of the static compliance d(x, y, theta)/d(Fx, Fy, Mz),
-    the mass the platform's; shape = |planar| / |angular| amplitude (m/rad). NaN where the static
-    solve fails."""
-    body = scene.end.body
-    mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
-
-    def pose(lengths, wrench):
-        s = experiment.apply(scene, {"lengths": lengths})
-        s = eqx.tree_at(
-            lambda s: (s.load.force, s.load.moment), s, (jnp.zeros(3).at[:2].set(wrench[:2]), jnp.zeros(3).at[2].set(wrench[2]))
-        )
-        return planar_rest(s)
-
-    @jax.jit
-    def modes_of(log_lengths):
-        L = jnp.exp(log_lengths)
-        C, ok = jax.jacfwd(pose, argnums=1, has_aux=True)(L, jnp.zeros(3))
-        K = jnp.linalg.inv(C)
-        K = 0.5 * (K + K.T)
-        r = 1.0 / jnp.sqrt(mass)
-        w2, v = jnp.linalg.eigh(r[:, None] * K * r[None, :])
-        phi = r[:, None] * v
-        shape = jnp.hypot(phi[0], phi[1]) / jnp.abs(phi[2])
-        f = jnp.sqrt(jnp.maximum(w2, 0.0)) / (2 * jnp.pi)
-        return jnp.where(ok, f, jnp.nan), jnp.where(ok, shape, jnp.nan)
-
-    return modes_of

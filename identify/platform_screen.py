@@ -1,0 +1,210 @@
+r"""Rod lengths and damping of a planar platform's push-release recording: a screen of the prior
+against the recorded free motion, through the platform's lumped modes.
+
+**The lumped modes.** The rods weigh 1e-5 of the platform, so after a release the platform moves
+as three coupled oscillators: the stiffness ``K`` is the inverse of the static compliance
+d(x, y, theta)/d(Fx, Fy, Mz) at the rest (statics only, a few milliseconds per set of lengths),
+the mass ``M = diag(m, m, I_z)`` the platform's. Kelvin-Voigt damping of massless linear rods is
+the damping matrix ``tau K`` exactly (a rod's strain is linear in the pose, so its stress
+``K (eps + tau eps')`` is the stiffness acting on ``x + tau x'``): mode k decays at
+``tau w_k^2 / 2`` and oscillates at ``w_k sqrt(1 - zeta_k^2)``, ``zeta_k = tau w_k / 2``.
+
+**The comparison** is made at the frame times, so the aliasing (114 frames/s show 70-160 Hz
+modes) and the missing frames are the recording's own and no frequency is unfolded::
+
+    pose(t) - settled = sum_k [R(beta) phi_k] e^{-s_k t} (a_k cos w_k t + b_k sin w_k t)
+
+``R(beta)`` is the camera's rotation (the settled angle minus the model's rest angle), ``phi_k``
+the mode shapes; the amplitudes ``(a_k, b_k)`` are free, since the push, the exposure and the
+camera's clock offset each only scale and rephase every mode, and are solved by linear least
+squares for each candidate (variable projection). The remaining weighted sum of squares ranks
+candidate lengths and tau: it uses every mode's frequency, decay and shape in the three
+channels at once, where matching a few frequencies read off the recording left 30 % of the
+prior "matching".
+
+**The stages** (`screen`): the nominal lengths and a seeded Latin hypercube of the prior, each
+with tau on a log grid over ``TAU_RANGE``; the best few are polished by Levenberg-Marquardt on
+(log lengths, log tau) (finite differences: a model evaluation is a static solve); the distinct
+polished ones close to the best go on to the time-domain ranking with the full model.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import pcrjax
+
+from . import experiment
+from .least_squares import FitError, levenberg_marquardt
+
+SCREENED = 1024  # sets of lengths screened (the nominal ones and a Latin hypercube)
+TAUS = 25  # tau values screened per set of lengths, log-spaced over the prior's range
+POLISHED = 8  # the best screened polished by Levenberg-Marquardt
+KEPT = 3  # polished candidates passed on to the full model's ranking ...
+CLOSE = 3.0  # ... if their sum of squares is within this factor of the best's
+HORIZON = 0.5  # s of free motion compared (the modes have decayed by then)
+FD_STEP = 1e-6  # finite-difference step in log lengths and log tau
+
+
+def planar_rest(scene):
+    """(x, y, theta of the static equilibrium at t = 0, whether its solve converged)."""
+    st = pcrjax.solve_static(scene, throw=False)
+    return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
+
+
+def lumped_modes(scene):
+    """Jitted ``log lengths -> (rest pose (3,), angular frequencies w (3,) rad/s, mode shapes
+    phi (3, 3) (columns, M-orthonormal), whether the static solves converged)`` of a planar
+    platform on massless rods (see the module's text)."""
+    body = scene.end.body
+    mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
+
+    def pose(lengths, wrench):
+        s = experiment.apply(scene, {"lengths": lengths})
+        s = eqx.tree_at(
+            lambda s: (s.load.force, s.load.moment), s, (jnp.zeros(3).at[:2].set(wrench[:2]), jnp.zeros(3).at[2].set(wrench[2]))
+        )
+        return planar_rest(s)
+
+    @jax.jit
+    def modes_of(log_lengths):
+        L = jnp.exp(log_lengths)
+        rest, ok = pose(L, jnp.zeros(3))
+        C, _ = jax.jacfwd(pose, argnums=1, has_aux=True)(L, jnp.zeros(3))
+        K = jnp.linalg.inv(C)
+        K = 0.5 * (K + K.T)
+        r = 1.0 / jnp.sqrt(mass)
+        w2, v = jnp.linalg.eigh(r[:, None] * K * r[None, :])
+        return rest, jnp.sqrt(jnp.maximum(w2, 0.0)), r[:, None] * v, ok & jnp.all(jnp.isfinite(w2))
+
+    return modes_of
+
+
+def platform_modes(scene):
+    """Jitted ``log lengths -> (frequencies Hz (3,), shapes (3,))`` of the lumped modes; shape =
+    |planar| / |angular| amplitude (m/rad). NaN where the static solve fails."""
+    modes_of = lumped_modes(scene)
+
+    @jax.jit
+    def of(log_lengths):
+        _, w, phi, ok = modes_of(log_lengths)
+        shape = jnp.hypot(phi[0], phi[1]) / jnp.abs(phi[2])
+        return jnp.where(ok, w / (2 * jnp.pi), jnp.nan), jnp.where(ok, shape, jnp.nan)
+
+    return of
+
+
+class FreeMotion:
+    """The recording's motion after the release at ``t_from``, about its settled pose (the mean
+    of the last half of the frames after the release) and in units of its noise (their
+    scatter: one level for the two positions, one for the angle), over ``HORIZON`` seconds."""
+
+    def __init__(self, rec, t_from: float):
+        after = rec.t >= t_from
+        t, pose = rec.t[after], rec.pose[after]
+        if t.size < 12:
+            raise ValueError(f"{rec.path}: {t.size} frames after the release at t = {t_from:g} s: too short to screen the prior")
+        late = t >= 0.5 * (t[0] + t[-1])
+        self.settled = np.mean(pose[late], axis=0)
+        spread = np.std(pose[late], axis=0)
+        self.sigma = np.maximum([np.hypot(*spread[:2]) / np.sqrt(2)] * 2 + [spread[2]], 1e-15)
+        active = t < t_from + HORIZON
+        self.t = jnp.asarray(t[active] - t_from)
+        self.data = jnp.asarray(((pose[active] - self.settled) / self.sigma).reshape(-1))
+        self.rows = int(self.data.size)
+
+    def residual(self, rest, w, phi, log_tau):
+        """Whitened residuals (rows,) of the best amplitudes for the modes ``(w, phi)`` about the
+        rest pose ``rest`` at damping ``exp(log_tau)``."""
+        beta = self.settled[2] - rest[2]
+        c, s = jnp.cos(beta), jnp.sin(beta)
+        seen = jnp.stack([c * phi[0] - s * phi[1], s * phi[0] + c * phi[1], phi[2]]) / jnp.asarray(self.sigma)[:, None]
+        zeta = 0.5 * jnp.exp(log_tau) * w
+        decay, wd = zeta * w, w * jnp.sqrt(jnp.clip(1.0 - zeta**2, 1e-12))
+        env = jnp.exp(-decay[None, :] * self.t[:, None])
+        phase = wd[None, :] * self.t[:, None]
+        waves = jnp.stack([env * jnp.cos(phase), env * jnp.sin(phase)], axis=-1)  # (frames, modes, 2)
+        A = (seen[None, :, :, None] * waves[:, None, :, :]).reshape(self.rows, -1)  # rows: frames x channels
+        amps = jnp.linalg.lstsq(A, self.data)[0]
+        return self.data - A @ amps
+
+
+def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, seed: int = 0, warm=None):
+    """(log tau, the candidate log lengths worth ranking with the full model, best first) of a
+    planar push-release recording (see the module's text). ``theta``: the start (its lengths
+    the nominal ones, its damping the scene's); ``warm()`` is called once the recording is
+    known to hold enough free motion."""
+    from .start import latin_hypercube  # noqa: PLC0415 (start imports this module)
+
+    motion = FreeMotion(problem.rec, experiment.forcing_end(problem.scene))
+    if warm is not None:
+        warm()
+    modes_of = lumped_modes(problem.scene)
+    x0 = np.asarray(theta[i_len], float)
+    tau0 = float(np.mean(np.asarray(problem.fixed["tau"])))
+    log_taus = jnp.asarray(np.log(tau0) + np.linspace(-1.0, 1.0, TAUS) * np.log(tau_range))
+
+    @jax.jit
+    def costs(modes):
+        rest, w, phi, ok = modes
+        cost = jax.vmap(lambda lt: jnp.sum(jnp.square(motion.residual(rest, w, phi, lt))))(log_taus)
+        return jnp.where(ok, cost, jnp.inf)
+
+    @jax.jit
+    def residual_at(modes, log_tau):
+        rest, w, phi, ok = modes
+        return jnp.where(ok, motion.residual(rest, w, phi, log_tau), jnp.nan)
+
+    def residual(y):
+        return residual_at(modes_of(y[:-1]), y[-1])
+
+    def with_jacobian(y):
+        y = np.asarray(y, float)
+        r = np.asarray(residual(jnp.asarray(y)))
+        J = np.stack([(np.asarray(residual(jnp.asarray(y + FD_STEP * e))) - r) / FD_STEP for e in np.eye(y.size)], axis=1)
+        return r, J
+
+    def polish(y):
+        try:
+            y, _, r, *_ = levenberg_marquardt(residual, with_jacobian, y, 20, ftol=1e-8, max_step=0.2)
+        except FitError:
+            return y, np.inf
+        inside = np.all(np.abs(np.exp(y[:-1]) - np.exp(x0)) <= 1.5 * prior_length)
+        return y, float(r @ r) if inside else np.inf
+
+    cands = np.log(latin_hypercube(np.exp(x0), prior_length, SCREENED, seed))
+    # one static solve and its compliance per candidate, a few ms: no threads (they gain nothing
+    # on programs this short)
+    screened = np.array([np.asarray(costs(modes_of(jnp.asarray(x)))) for x in cands])
+    best = np.min(screened, axis=1)
+    order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
+    dof = max(motion.rows - 2 * 3, 1)
+    say(
+        f"start: screened {len(cands)} sets of lengths within ±{prior_length * 1e3:g} mm and {TAUS} values of tau "
+        f"against {motion.rows // 3} frames of free motion (lumped modes): the model holds at {len(order)}"
+        + (f", the best reduced chi-square {best[order[0]] / dof:.4g}" if order else "")
+    )
+    if not order:
+        raise FitError(
+            f"{problem.rec.path}: the static solve fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
+        )
+    starts = [np.append(cands[i], log_taus[int(np.argmin(screened[i]))]) for i in order[:POLISHED]]
+    polished = sorted(map(polish, starts), key=lambda p: p[1])
+    kept = []
+    for y, cost in polished:
+        if np.isfinite(cost) and cost <= CLOSE * polished[0][1] and not any(np.max(np.abs(y - k)) < 1e-3 for k in kept):
+            kept.append(y)
+    if not kept:  # every polish failed or left the prior: the screened best
+        kept = [starts[0]]
+        say("start: no polished candidate stayed within the prior; going on from the screened best")
+    kept = kept[:KEPT]
+    top = polished[0]
+    say(
+        f"start: polished the {len(starts)} best: reduced chi-square {top[1] / (dof - 4):.4g} at lengths "
+        f"{np.round(np.exp(top[0][:-1]) * 1e3, 3).tolist()} mm, tau {np.exp(top[0][-1]):.4g} s; "
+        f"{len(kept)} go on to the full model"
+    )
+    return float(kept[0][-1]), [y[:-1] for y in kept]
