@@ -2,10 +2,10 @@ r"""Start values of damping and lengths: a screen of the prior, feature matching
 
 An oscillating recording's loss has a minimum every cycle of phase error, so a fit started from
 nominal rod lengths lands in a wrong minimum (on the Triskele-bot 2 % of rod length moves the
-platform modes from 86-155 Hz to 19-84 Hz). A planar platform's free motion (a push released) is screened in the time domain against its
-lumped modes (`platform_screen`: statics only, every frame compared as filmed). Elsewhere,
-features that do not depend on the phase, the amplitude, the push or the camera's frame and
-clock locate the basin first:
+platform modes from 86-155 Hz to 19-84 Hz). A planar platform's free motion (a push released)
+is screened in the time domain against its lumped modes (`platform_screen`: statics only, every
+frame compared as filmed). Elsewhere, features that do not depend on the phase, the amplitude,
+the push or the camera's frame and clock locate the basin first:
 
 * **a rod's free motion** (a tip load released): the frequencies of the strongest oscillations
   the camera shows. They are compared *as the camera shows them*: the model's frequencies,
