@@ -43,7 +43,7 @@ def _parser():
         type=int,
         default=2,
         metavar="LEVELS",
-        help="grid refinements (2x nodes, dt/2 each) that measure the discretisation error, at most (default 2; 0: none)",
+        help="refinements of the grid that measure the discretisation error, at most, in space (2x nodes each) and then in time (dt/2 each) (default 2; 0: none)",
     )
     return p
 
@@ -159,7 +159,7 @@ def run(args) -> dict:
         m = result.model
         print(
             f"values from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s, Newton tolerance {m['tol']:.0e}; "
-            "± statistical (noise), ± discretisation (the last grid refinement's move)"
+            "± statistical (noise), ± discretisation (the last space and time refinements' moves, in quadrature)"
         )
     if result.outliers:
         shown = ", ".join(f"{t:.4g}" for t in result.outliers[:10]) + (" ..." if len(result.outliers) > 10 else "")

@@ -5,16 +5,23 @@ an approximation (N nodes, a time step dt, a Newton tolerance); reality has no g
 fit the recording is refitted from the optimum:
 
 1. with the Newton tolerance a tenth of the fit's (same grid): the solver-tolerance error;
-2. on a grid of twice the nodes and half the time step (and the tenth of the tolerance): the
-   move of each parameter is the discretisation error of the coarser grid's answer. While a
-   move exceeds a third of its standard error, the finer grid's answer is taken and that grid
-   is refined once more, up to ``max_levels`` refinements.
+2. **space**: with twice the nodes at the fit's dt (and the tenth of the tolerance): the move
+   of each parameter is the spatial discretisation error of the coarser answer. While a move
+   exceeds a third of its standard error, the finer answer is taken and the nodes doubled
+   again, up to ``max_levels`` times;
+3. **time**: then with half the dt at the nodes step 2 settled on, the same way.
 
-The reported values are those of the finest grid evaluated, and the discretisation error beside
-each is its last move (for a convergent scheme, a bound on the finest grid's own error); if the
-last move still exceeds a third of the standard error, the result says so. The noise levels
-were estimated from the fit's residuals, which hold the coarse grid's model error too; they and
-the standard errors are rescaled by the finest grid's reduced chi-square (one factor for all
+The two are refined apart because one usually dominates, and each refit costs in proportion
+to nodes / dt: on the Triskele push-release (modes at 70-155 Hz, N 10, dt 0.5 ms) halving dt
+moved the lengths by up to 137 um and doubling N by up to 18 um, so the time chain is refined at N 10
+instead of 2N, 4N at dt / 2, dt / 4 (a quarter of the cost at the second level).
+
+The reported values are those of the finest model evaluated, and the discretisation error
+beside each combines the last space move and the last time move in quadrature (for a
+convergent scheme, each a bound on the finest model's own error of that kind); if a last move
+still exceeds a third of the standard error, the result says which. The noise levels were
+estimated from the fit's residuals, which hold the coarse grid's model error too; they and the
+standard errors are rescaled by the finest model's reduced chi-square (one factor for all
 columns), so the standard errors are the noise's alone.
 
 Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
@@ -74,7 +81,11 @@ class Level:
 
 def _plain(values: dict) -> dict:
     """Reported values as JSON numbers (scalars as floats, vectors as lists)."""
-    return {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in values.items()}
+    out = {}
+    for k, v in values.items():
+        v = np.asarray(v, float).ravel()
+        out[k] = v.tolist() if v.size > 1 else float(v[0])
+    return out
 
 
 def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER):
@@ -113,86 +124,107 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
 
 
 def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,)):
-    """(the `Level` list: the tolerance refit first, then the grids; the failures: a refit whose
-    rollout failed ends the list) for the fit ``problem`` at its optimum ``theta`` (Jacobian
-    ``J``, standard errors ``se_theta`` of theta at its reduced chi-square ``chi2``, its noise
-    levels); each move is in the standard errors of its own grid (rescaled by its reduced
-    chi-square). ``progress(message)``."""
+    """(the `Level` list: the tolerance refit first, then the space refits, then the time
+    refits; the failures: a refit that failed ends the list) for the fit ``problem`` at its
+    optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
+    chi-square ``chi2``, its noise levels). Space: twice the nodes at the fit's dt, while the
+    move exceeds a third of a standard error, up to ``max_levels`` times; then time: half the
+    dt at the nodes space settled on, the same way. Each move is in the standard errors of its
+    own model (rescaled by its reduced chi-square). ``progress(message)``."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
-    nodes, dt, tol = solver.nodes, float(solver.dt), float(solver.newton.tol)
-    levels, base_theta, failed = [], np.asarray(theta, float), []
-    plan = [("tolerance", nodes, dt, tol * TOL_FACTOR)]
-    plan += [("grid", nodes * 2**k, dt / 2**k, tol * TOL_FACTOR) for k in range(1, max_levels + 1)]
-    for what, n, h, tl in plan:
+    nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
+    levels, failed = [], []
+
+    def refit(what, n, h, base, windows):
         t0 = time.perf_counter()
         if progress is not None:
-            progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} (discretisation error) ...")
+            progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
         try:
-            th, cost, it = chord_refit(fine, base_theta, J, window_ends if what == "grid" else (None,))
+            th, cost, it = chord_refit(fine, base, J, windows)
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
-            break
+            return None
         chi2_here = 2 * cost / max(m, 1)
         if chi2_here > WORSE * chi2:  # a finer model fits worse than the coarse one: a wrong minimum
             failed.append(
                 f"the refit with {n} nodes, dt {h:.3g} s reached a reduced chi-square of {chi2_here:.3g} against the fit's "
-                f"{chi2:.3g}: it did not find that grid's optimum, so its discretisation error is not measured"
+                f"{chi2:.3g}: it did not find that model's optimum, so its {what} error is not measured"
             )
-            break
-        move = (th - base_theta) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
+            return None
+        move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
         levels.append(Level(what, n, h, tl, th, move, chi2_here, it, time.perf_counter() - t0, fine))
         if progress is not None:
-            progress(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {levels[-1].chi2:.4g}")
-        if what == "tolerance":
-            continue  # the grid refinements start from the fit's own optimum and tolerance
-        base_theta = th
-        if np.max(np.abs(move)) <= THIRD:
-            break
+            progress(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
+        return levels[-1]
+
+    base = np.asarray(theta, float)
+    if refit("tolerance", nodes, dt, base, (None,)) is None:
+        return levels, failed
+    n, h = nodes, dt  # the grid refinements start from the fit's own optimum
+    for what in ("space", "time"):
+        for _ in range(max_levels):
+            n, h = (2 * n, h) if what == "space" else (n, h / 2)
+            lv = refit(what, n, h, base, window_ends)
+            if lv is None:
+                return levels, failed
+            base = lv.theta
+            if np.max(np.abs(lv.move_se)) <= THIRD:
+                break
     return levels, failed
 
 
 def _difference(a: dict, b: dict) -> dict:
-    return {k: (np.abs(a[k] - b[k]).tolist() if a[k].size > 1 else float(abs(a[k] - b[k])[0])) for k in a}
+    return {k: np.abs(np.asarray(a[k]) - np.asarray(b[k])) for k in a}
 
 
 def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,)):
     """``result`` (the `fit.Result` of ``problem`` at ``theta``, Jacobian ``J``) with the values
-    of the finest model evaluated by `refine`, their discretisation and tolerance errors, the
-    model they come from and the refits made; its message says when the last refinement still
-    moved a value by more than a third of its standard error."""
+    of the finest model evaluated by `refine`, their discretisation error (the last space and
+    the last time refinement's moves, combined in quadrature: the two errors add independently
+    to leading order) and tolerance error, the model they come from and the refits made; its
+    message says when a last refinement still moved a value by more than a third of its
+    standard error."""
     levels, failed = refine(
         problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends
     )
     message = " ".join([result.message, *failed]).strip()
-    if len(levels) < 2:  # no grid refinement came through: the fit's own values, no error measured
+    chains = {w: [i for i, lv in enumerate(levels) if lv.what == w] for w in ("space", "time")}
+    if not all(chains.values()):  # a refinement failed: the fit's own values, no error claimed
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
     at_fit = problem.reported(theta)
-    tol, grids = levels[0], levels[1:]
-    coarse = grids[-2] if len(grids) > 1 else None
-    before = at_fit if coarse is None else coarse.problem.reported(coarse.theta)
-    finest = grids[-1].problem.reported(grids[-1].theta)
-    values = _plain(finest)
-    noise = np.sqrt(grids[-1].chi2 / result.loss)  # the residuals' scale on the finest grid vs the fit's
-    worst = float(np.max(np.abs(grids[-1].move_se)))
-    if worst > THIRD:
-        label = problem.labels()[int(np.argmax(np.abs(grids[-1].move_se)))]
-        message = (f"{message} " if message else "") + (
-            f"the last grid refinement (to {grids[-1].nodes} nodes, dt {grids[-1].dt:.3g} s) still moved {label} by "
-            f"{worst:.2g} standard errors (more than {THIRD:.2f}): the discretisation error is not negligible; "
-            "a finer [solver] grid in the sidecar would settle it"
-        )
+
+    def reported(i):  # values of level i; before the grid refinements, the fit's
+        return at_fit if i == 0 else levels[i].problem.reported(levels[i].theta)
+
+    squared, notes = None, []
+    for what, idx in chains.items():
+        last = levels[idx[-1]]
+        moved = _difference(reported(idx[-1]), reported(idx[-1] - 1))
+        squared = {k: v**2 for k, v in moved.items()} if squared is None else {k: squared[k] + v**2 for k, v in moved.items()}
+        worst = float(np.max(np.abs(last.move_se)))
+        if worst > THIRD:
+            label = problem.labels()[int(np.argmax(np.abs(last.move_se)))]
+            finer = "nodes" if what == "space" else "dt"
+            notes.append(
+                f"the last {what} refinement (to {last.nodes} nodes, dt {last.dt:.3g} s) still moved {label} by {worst:.2g} "
+                f"standard errors (more than {THIRD:.2f}): the {what} discretisation error is not negligible; a finer "
+                f"[solver] {finer} in the sidecar (or more --refine levels) would settle it"
+            )
+    message = " ".join([message, *notes]).strip()
+    finest = levels[-1]
+    noise = np.sqrt(finest.chi2 / result.loss)  # the residuals' scale on the finest model vs the fit's
     return dataclasses.replace(
         result,
-        values=values,
+        values=_plain(finest.problem.reported(finest.theta)),
         standard_errors={
             k: (np.asarray(e) * noise).tolist() if np.size(e) > 1 else float(e) * noise for k, e in result.standard_errors.items()
         },
         sigma=[s * float(noise) for s in result.sigma],
-        discretisation_errors=_difference(finest, before),
-        tolerance_errors=_difference(tol.problem.reported(tol.theta), at_fit),
-        model=dict(nodes=grids[-1].nodes, dt=grids[-1].dt, tol=grids[-1].tol),
+        discretisation_errors=_plain({k: np.sqrt(v) for k, v in squared.items()}),
+        tolerance_errors=_plain(_difference(levels[0].problem.reported(levels[0].theta), at_fit)),
+        model=dict(nodes=finest.nodes, dt=finest.dt, tol=finest.tol),
         refinements=[lv.to_json() for lv in levels],
         message=message,
     )

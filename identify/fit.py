@@ -165,9 +165,10 @@ def fit(
     estimated from the first pass's residuals (feasible generalised least squares). Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
-    Then the model error of the answer is measured on finer models (`discretisation.report`,
-    up to ``refine_levels`` grid refinements, fewer when one moves no value by a third of its
-    standard error; 0: none) and the values are those of the finest.
+    Then the model error of the answer is measured on finer models (`discretisation.report`:
+    up to ``refine_levels`` refinements in space and then as many in time, fewer when one
+    moves no value by a third of its standard error; 0: none) and the values are those of the
+    finest.
     """
     t0 = time.perf_counter()
     duration = float(problem.t[-1] - problem.t[0])

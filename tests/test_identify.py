@@ -394,8 +394,8 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     """The whole `pcrjax-identify` path on a small case, in the default run: a cantilever
     recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 5x in
     time than the fit's (N 6, dt 2 ms), fitted from tau a factor 3 off and the length 1.6 mm off
-    (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, one grid
-    refinement, fit.json and the plots), with 2 % of its frames thrown off by decoding errors:
+    (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, one space
+    and one time refinement, fit.json and the plots), with 2 % of its frames thrown off by decoding errors:
     every truth within 3 combined uncertainties, and the wild frames reported."""
     import importlib.util
 
@@ -426,13 +426,20 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     for name in ("tau", "lengths", "time_offset"):
         err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
         assert abs(res["values"][name] - truth[name]) < 3 * err, (name, res["values"][name], truth[name], err)
-    assert res["model"]["nodes"] >= 12 and len(res["refinements"]) == 2  # tolerance, then one grid
-    # each refit's values are listed; the reported ones are the finest grid's, and their
-    # discretisation error is its move from the fit's own grid (the tolerance refit's neighbour)
-    grid, tol = res["refinements"][1], res["refinements"][0]
-    assert grid["values"] == res["values"] and set(tol["values"]) == set(res["values"])
-    move = abs(grid["values"]["lengths"] - tol["values"]["lengths"])
-    assert abs(move - res["discretisation_errors"]["lengths"]) <= 1.01 * res["tolerance_errors"]["lengths"] + 1e-15
+    # one space refinement (2N at the fit's dt), then one time refinement (dt / 2 at 2N)
+    tol, space, step = res["refinements"]
+    assert (tol["refit"], space["refit"], step["refit"]) == ("tolerance", "space", "time")
+    assert (space["nodes"], step["nodes"], step["dt"]) == (12, 12, pytest.approx(1e-3))
+    assert res["model"] == dict(nodes=12, dt=pytest.approx(1e-3), tol=step["tol"])
+    # each refit's values are listed; the reported ones are the finest model's, and their
+    # discretisation error combines the space refit's move from the fit's grid (the tolerance
+    # refit's neighbour) and the time refit's move from the space refit's
+    assert step["values"] == res["values"] and set(tol["values"]) == set(res["values"])
+    moves = (
+        abs(space["values"]["lengths"] - tol["values"]["lengths"]),
+        abs(step["values"]["lengths"] - space["values"]["lengths"]),
+    )
+    assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.01 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
 
