@@ -139,7 +139,9 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     known to hold enough free motion."""
     from .start import latin_hypercube  # noqa: PLC0415 (start imports this module)
 
-    motion = FreeMotion(problem.rec, experiment.forcing_end(problem.scene))
+    load = problem.scene.load  # free from the last event: a push released, or a load stepped on
+    events = [float(np.asarray(v)) for v in (load.apply_time, load.release_time) if np.isfinite(np.asarray(v))]
+    motion = FreeMotion(problem.rec, max([experiment.forcing_end(problem.scene), *events]))
     if warm is not None:
         warm()
     modes_of = lumped_modes(problem.scene)
