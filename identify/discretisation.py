@@ -6,9 +6,11 @@ fit the recording is refitted from the optimum:
 
 1. with the Newton tolerance a tenth of the fit's (same grid): the solver-tolerance error;
 2. **space**: with twice the nodes at the fit's dt (and the tenth of the tolerance): the move
-   of each parameter is the spatial discretisation error of the coarser answer. While a move
-   exceeds a third of its standard error, the finer answer is taken and the nodes doubled
-   again, up to ``max_levels`` times;
+   of each parameter is the spatial discretisation error of the coarser answer. While the move
+   of a parameter the fit is for (damping, lengths: `Problem.measured`; the push and the
+   camera are nuisance parameters, their errors reported all the same) exceeds a third of its
+   standard error, the finer answer is taken and the nodes doubled again, up to
+   ``max_levels`` times;
 3. **time**: then with half the dt at the nodes step 2 settled on, the same way.
 
 The two are refined apart because one usually dominates, and each refit costs in proportion
@@ -19,7 +21,8 @@ instead of 2N, 4N at dt / 2, dt / 4 (a quarter of the cost at the second level).
 The reported values are those of the finest model evaluated, and the discretisation error
 beside each combines the last space move and the last time move in quadrature (for a
 convergent scheme, each a bound on the finest model's own error of that kind); if a last move
-still exceeds a third of the standard error, the result says which. The noise levels were
+of a measured parameter still exceeds a third of its standard error, the result says which. The
+noise levels were
 estimated from the fit's residuals, which hold the coarse grid's model error too; they and the
 standard errors are rescaled by the finest model's reduced chi-square (one factor for all
 columns), so the standard errors are the noise's alone.
@@ -128,7 +131,8 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
     refits; the failures: a refit that failed ends the list) for the fit ``problem`` at its
     optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
     chi-square ``chi2``, its noise levels). Space: twice the nodes at the fit's dt, while the
-    move exceeds a third of a standard error, up to ``max_levels`` times; then time: half the
+    move of a measured parameter exceeds a third of a standard error, up to ``max_levels``
+    times; then time: half the
     dt at the nodes space settled on, the same way. Each move is in the standard errors of its
     own model (rescaled by its reduced chi-square). ``progress(message)``."""
     m = problem.counted(None) - theta.size
@@ -170,7 +174,7 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             if lv is None:
                 return levels, failed
             base = lv.theta
-            if np.max(np.abs(lv.move_se)) <= THIRD:
+            if np.max(np.abs(lv.move_se[problem.measured])) <= THIRD:
                 break
     return levels, failed
 
@@ -203,9 +207,10 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         last = levels[idx[-1]]
         moved = _difference(reported(idx[-1]), reported(idx[-1] - 1))
         squared = {k: v**2 for k, v in moved.items()} if squared is None else {k: squared[k] + v**2 for k, v in moved.items()}
-        worst = float(np.max(np.abs(last.move_se)))
+        moves = np.where(problem.measured, np.abs(last.move_se), 0.0)
+        worst = float(np.max(moves))
         if worst > THIRD:
-            label = problem.labels()[int(np.argmax(np.abs(last.move_se)))]
+            label = problem.labels()[int(np.argmax(moves))]
             finer = "nodes" if what == "space" else "dt"
             notes.append(
                 f"the last {what} refinement (to {last.nodes} nodes, dt {last.dt:.3g} s) still moved {label} by {worst:.2g} "

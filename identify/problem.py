@@ -47,6 +47,7 @@ CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time
 # 1 kHz cantilever film is a millimetre from the first frame, a hundred typical units).
 LINEAR = ("push_force", "push_moment", "start_position", "start_angle")
 CAMERA = tuple(c[0] for c in CAMERA_UNKNOWNS)
+NUISANCE = ("push_force", "push_moment", *CAMERA)  # fitted, but not what a fit is for
 
 
 def frame_transform(robot_start, vals):
@@ -201,6 +202,12 @@ class Problem:
         offset, rotation = frame_transform(jnp.asarray(self.motion(theta, 0.0)[0]), vals)
         out.update(frame_offset=np.asarray(offset, float), frame_rotation=np.atleast_1d(np.asarray(rotation, float)))
         return out
+
+    @property
+    def measured(self) -> np.ndarray:
+        """Which entries of theta are the physical parameters asked for (damping, lengths), not
+        the nuisance ones (the released push, the camera)."""
+        return np.concatenate([np.full(u.size, u.name not in NUISANCE) for u in self.unknowns])
 
     def labels(self) -> list[str]:
         out = []

@@ -34,6 +34,7 @@ class Linear:
             solver=types.SimpleNamespace(nodes=nodes, dt=dt, newton=types.SimpleNamespace(tol=1e-10))
         )
         self.max_step = np.inf
+        self.measured = np.ones(UNKNOWNS, bool)
 
     def window(self, t_end=None):
         return (T <= (np.inf if t_end is None else t_end)).astype(float), None
@@ -88,3 +89,23 @@ def test_a_refit_that_fits_far_worse_is_reported_and_not_used():
     levels, failed = discretisation.refine(coarse, theta, coarse.A / SIGMA, se, max_levels=2, chi2=chi2)
     assert [lv.what for lv in levels] == ["tolerance", "space", "space", "time"]
     assert len(failed) == 1 and "did not find that model's optimum" in failed[0]
+
+
+def test_only_the_measured_parameters_decide_the_refinement():
+    """A grid that moves only a nuisance parameter (the push, the camera) by many standard
+    errors: each chain stops after one refinement, the move still recorded."""
+
+    class Nuisance(Linear):
+        def __init__(self, nodes, dt, offset=lambda dt: 0.0):
+            super().__init__(nodes, dt, offset)
+            self.A = A0 @ (np.eye(UNKNOWNS) + np.diag([0.0, 0.0, 5.0 / nodes + 5.0 * dt]))
+            self.measured = np.array([True, True, False])
+
+        def refined(self, nodes, dt, tol):
+            return Nuisance(nodes, dt)
+
+    coarse = Nuisance(10, 0.1)
+    theta, chi2, se = _start(coarse)
+    levels, failed = discretisation.refine(coarse, theta, coarse.A / SIGMA, se, max_levels=2, chi2=chi2)
+    assert not failed and [lv.what for lv in levels] == ["tolerance", "space", "time"]
+    assert abs(levels[1].move_se[2]) > 10 and np.all(np.abs(levels[1].move_se[:2]) < 1 / 3)
