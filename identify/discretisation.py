@@ -15,17 +15,15 @@ fit the recording is refitted from the optimum:
 
 The two are refined apart because one usually dominates, and each refit costs in proportion
 to nodes / dt: on the Triskele push-release (modes at 70-155 Hz, N 10, dt 0.5 ms) halving dt
-moved the lengths by up to 137 um and doubling N by up to 18 um, so the time chain is refined at N 10
-instead of 2N, 4N at dt / 2, dt / 4 (a quarter of the cost at the second level).
+moved the lengths by up to 137 um and doubling N by up to 18 um.
 
 The reported values are those of the finest model evaluated, and the discretisation error
 beside each combines the last space move and the last time move in quadrature (for a
 convergent scheme, each a bound on the finest model's own error of that kind); if a last move
-of a measured parameter still exceeds a third of its standard error, the result says which. The
-noise levels were
-estimated from the fit's residuals, which hold the coarse grid's model error too; they and the
-standard errors are rescaled by the finest model's reduced chi-square (one factor for all
-columns), so the standard errors are the noise's alone.
+of a measured parameter still exceeds a third of its standard error, the result says which.
+The noise levels were estimated from the fit's residuals, which hold the coarse grid's model
+error too; they and the standard errors are rescaled by the finest model's reduced chi-square
+(one factor for all columns), so the standard errors are the noise's alone.
 
 Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
 the coarse model, each step taken only where it lowers the cost): a finer grid moves the
@@ -188,8 +186,8 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     of the finest model evaluated by `refine`, their discretisation error (the last space and
     the last time refinement's moves, combined in quadrature: the two errors add independently
     to leading order) and tolerance error, the model they come from and the refits made; its
-    message says when a last refinement still moved a value by more than a third of its
-    standard error."""
+    message says when a last refinement still moved a measured value (`Problem.measured`) by
+    more than a third of its standard error."""
     levels, failed = refine(
         problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends
     )
