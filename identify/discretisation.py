@@ -130,9 +130,9 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
     optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
     chi-square ``chi2``, its noise levels). Space: twice the nodes at the fit's dt, while the
     move of a measured parameter exceeds a third of a standard error, up to ``max_levels``
-    times; then time: half the
-    dt at the nodes space settled on, the same way. Each move is in the standard errors of its
-    own model (rescaled by its reduced chi-square). ``progress(message)``."""
+    times; then time: half the dt at the nodes space settled on, the same way. Each move is in
+    the standard errors of its own model (rescaled by its reduced chi-square).
+    ``progress(message)``."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR

@@ -62,7 +62,7 @@ TAU_RANGE = 10.0  # tau within a factor of this of nominal
 # candidates screened (the nominal lengths and a Latin hypercube) and the best ones polished by
 # Gauss-Newton on the features, then ranked in the time domain: many where the features are
 # static solves, fewer where each is a simulation
-SCREEN = {True: (512, 64), False: (24, 4)}  # static features: (screened, polished); simulated
+SCREEN = {True: (512, 64), False: (24, 4)}  # actuated (static features): (screened, polished); simulated
 MATCH = 0.03  # features within 3 %: a match
 TAU_MATCH = 0.15  # a model mode this close to the strongest recorded one gives the damping
 TAU_ITER = 3  # damping estimates, each simulated at the previous one's tau
@@ -146,7 +146,6 @@ class Features:
             self.recorded = np.concatenate([f[: self.n_freq], shape[: self.n_shape]])
             w = s / np.sum(s[: self.n_freq])
             self.weights = np.concatenate([w[: self.n_freq], SHAPE_WEIGHT * w[: self.n_shape]])
-        self.static = self.actuated  # features from static solves (no simulation)
         # the model's simulated modes at theta's damping (the discretised damping moves frequencies too)
         damping = [np.exp(self.theta[sl]) for sl in problem.damping]
         self.tau_sim = float(np.mean(np.concatenate(damping))) if damping else None
@@ -254,23 +253,21 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     (log lengths) worth ranking in the time domain, best first). See the module's text."""
     theta = np.array(theta, float)
     say = _sayer(progress)
+    i_len = problem.slices["lengths"]
+    L0 = np.exp(theta[i_len])
+    if np.any(L0 <= prior_length):
+        raise RecordingError(f"prior: lengths {L0.tolist()} m cannot vary by ±{prior_length:g} m")
     scene = problem.scene
     if experiment.forcing_end(scene) <= 0.0 and not experiment.is_rod(scene) and bool(scene.effects.planar):
         # a planar platform's free motion: its lumped modes against the frames themselves
-        i_len = problem.slices["lengths"]
-        if np.any(np.exp(theta[i_len]) <= prior_length):
-            raise RecordingError(f"prior: lengths {np.exp(theta[i_len]).tolist()} m cannot vary by ±{prior_length:g} m")
         log_tau, found = platform_screen.screen(problem, theta, i_len, say, prior_length, TAU_RANGE, seed, warm)
         theta = _set_damping(problem, theta, float(np.exp(log_tau))) if problem.damping else theta
         theta[i_len] = found[0]
         return theta, found
     feats = Features(problem, theta)
     say(f"start: recorded {feats.describe()}")
-    x0 = theta[feats.i_len]
-    L0 = np.exp(x0)
-    if np.any(L0 <= prior_length):
-        raise RecordingError(f"prior: lengths {L0.tolist()} m cannot vary by ±{prior_length:g} m")
-    n_screen, n_polish = SCREEN[feats.static]
+    x0 = theta[i_len]
+    n_screen, n_polish = SCREEN[feats.actuated]
     cands = np.log(latin_hypercube(L0, prior_length, n_screen, seed))
     feats.of(x0)  # compiles once, before the threads
     if warm is not None:
@@ -290,7 +287,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
             f"{problem.rec.path}: the model fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
         )
 
-    if not feats.static and _indistinct([found[i][: feats.n_freq] for i in ok]):
+    if not feats.actuated and _indistinct([found[i][: feats.n_freq] for i in ok]):
         say(
             f"start: over the prior the model's features move less than {MATCH:.0%}: they cannot tell lengths apart; "
             "starting from the nominal lengths"
