@@ -61,9 +61,13 @@ def _restart_root(params, start):
     return x[0], stats
 
 
-def test_batched_solve_equals_single_solves_member_by_member():
+@pytest.mark.parametrize("chunk", [2, 4, 8])
+def test_batched_solve_equals_single_solves_member_by_member(chunk, monkeypatch):
     """Under vmap the members keep their own iterates, stages and failures: a member that needs
-    the restart, one whose residual is NaN (it fails; the others are unharmed), and plain ones."""
+    the restart, one whose residual is NaN (it fails; the others are unharmed), and plain ones;
+    with the Jacobians evaluated a few members at a time or for the whole batch at once (a GPU's
+    larger chunks)."""
+    monkeypatch.setitem(newton.JAC_CHUNK, jax.default_backend(), chunk)
     params = jnp.array([[2.0, 3.0], [1.0, 1.0], [5.0, -2.0], [2.0, jnp.nan], [0.5, 7.0]])
     starts = jnp.array([4.0, jnp.nan, -3.0, 1.0, 10.0])
     xb, sb = jax.jit(jax.vmap(_restart_root))(params, starts)

@@ -246,7 +246,16 @@ def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
     return nxt, (step_x, r_t - r), upd
 
 
-JAC_CHUNK = 4  # members whose Jacobians a batched solve evaluates together
+# Members whose Jacobians a batched solve evaluates together, by backend: on a CPU a batched
+# Jacobian costs in proportion to its members, so small chunks; on a GPU a chunk's members run in
+# parallel and each chunk is a sequential pass of many small kernels, so larger ones.
+JAC_CHUNK = {"cpu": 4}
+JAC_CHUNK_ACCELERATOR = 128
+
+
+def jac_chunk() -> int:
+    """`JAC_CHUNK` for the backend that programs are compiled for now."""
+    return JAC_CHUNK.get(jax.default_backend(), JAC_CHUNK_ACCELERATOR)
 
 
 def _where(p, new, old):
@@ -268,7 +277,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     ``batched``: every array carries a leading axis of B independent members; ``fn(x, s)``
     takes and returns the whole batch and ``jac_fn(x, s, members)`` the Jacobians of the listed
     members (indices into the batch, one row of ``x`` and ``s`` each). The members' decisions
-    stay their own: Jacobians are evaluated only for the members that ask for one, `JAC_CHUNK`
+    stay their own: Jacobians are evaluated only for the members that ask for one, `jac_chunk()`
     at a time (a batched Jacobian costs in proportion to its members, and in a large batch a
     few members refresh in most passes); Broyden updates are made when some member takes
     one. The loop runs until every member has finished; a finished member's state is held.
@@ -284,9 +293,9 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
         if not batched:
             return maybe(p, lambda: Jacobian.factor(jac_fn(x, s)), old)
         size = p.shape[0]
-        if size <= JAC_CHUNK:  # (the gather-and-scatter loop over a whole batch ran 5-10x slower on XLA:CPU)
+        m = jac_chunk()
+        if size <= m:
             return maybe(p, lambda: jax.vmap(Jacobian.factor)(jac_fn(x, s, jnp.arange(size))), old)
-        m = JAC_CHUNK
         chunks = -(-size // m)
         order = jnp.nonzero(p, size=chunks * m, fill_value=size)[0]  # flagged members first, then past the end
 
