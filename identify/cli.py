@@ -26,7 +26,8 @@ def _parser():
     p.add_argument(
         "--fit",
         default="tau,lengths",
-        help="parameters: tau (shared), tau_per_rod, tau_split (stretch-shear and bend-twist apart), lengths (comma separated)",
+        help="parameters: tau (shared), tau_per_rod, tau_split (stretch-shear and bend-twist apart), lengths, youngs_modulus "
+        "(E of all rods, the shear modulus with it), platform_mass (the inertia with it) (comma separated)",
     )
     p.add_argument("--scene", help="scene name or TOML path (default: the sidecar's)")
     p.add_argument("--out", default="out/identify", help="output folder")
@@ -182,6 +183,8 @@ UNITS = dict(
     tau_se="s",
     tau_bt="s",
     lengths="m",
+    youngs_modulus="Pa",
+    platform_mass="kg",
     push_force="N",
     push_moment="N m",
     start_position="m",
@@ -190,7 +193,7 @@ UNITS = dict(
     frame_offset="m",
     frame_rotation="rad",
 )
-PREFIXES = ((1e-9, "n"), (1e-6, "µ"), (1e-3, "m"), (1.0, ""))
+PREFIXES = ((1e-9, "n"), (1e-6, "µ"), (1e-3, "m"), (1.0, ""), (1e3, "k"), (1e6, "M"), (1e9, "G"))
 
 
 def _prefix(size: float):
@@ -201,9 +204,11 @@ def _prefix(size: float):
 def format_value(name, value, se, disc=None) -> str:
     """``value ± se [± disc] unit`` in the SI prefix that fits the value, to the digits its
     smallest uncertainty holds (two significant figures of it)."""
-    v = np.atleast_1d(np.asarray(value, float))
-    errs = [np.atleast_1d(np.asarray(e, float)) for e in (se, disc) if e is not None]
     unit = UNITS.get(name, "")
+    grams = 1e3 if unit == "kg" else 1.0  # prefixes go on the gram
+    unit = "g" if unit == "kg" else unit
+    v = np.atleast_1d(np.asarray(value, float)) * grams
+    errs = [np.atleast_1d(np.asarray(e, float)) * grams for e in (se, disc) if e is not None]
     size = float(np.max(np.abs(v))) or 1.0
     factor, prefix = _prefix(size)
     if unit == "rad" and factor < 1e-3:

@@ -9,6 +9,9 @@
 * ``push_force`` (N, planar x, y) and ``push_moment`` (N m, about z): the load held until the
   release of a push-and-release (a rod scene: ``push_force`` is the tip force in the bending
   plane x, z);
+* ``youngs_modulus`` (Pa): E of every rod, one value (the rods are cut from one wire); the shear
+  modulus moves with it (Poisson's ratio held);
+* ``platform_mass`` (kg): the platform's mass; its inertia moves with it (its shape held);
 * ``frame_offset`` (m, 2), ``frame_rotation`` (rad), ``time_offset`` (s): the camera (`camera`).
 
 `apply` writes the physical ones into a scene (``eqx.tree_at``; a rod length changes with the
@@ -81,6 +84,19 @@ def nominal(scene) -> dict:
     return out
 
 
+def material(scene, names) -> dict:
+    """The scene's own ``youngs_modulus`` (the rods' mean) and ``platform_mass``, those of
+    ``names`` asked for; a rod scene has no platform mass."""
+    out = {}
+    if "youngs_modulus" in names:
+        out["youngs_modulus"] = jnp.mean(jnp.asarray(scene.legs.rod.youngs_modulus, jnp.float64))
+    if "platform_mass" in names:
+        if is_rod(scene):
+            raise RecordingError("platform_mass: the scene is a single rod, it has no platform")
+        out["platform_mass"] = jnp.asarray(scene.end.body.mass, jnp.float64)
+    return out
+
+
 def apply(scene, params: dict):
     """``scene`` with the physical entries of ``params`` written in (others ignored)."""
     rod = scene.legs.rod
@@ -93,6 +109,14 @@ def apply(scene, params: dict):
         scene = eqx.tree_at(lambda s: s.legs.rod.damping, scene, split)
     if "lengths" in params:
         scene = eqx.tree_at(lambda s: s.legs.rod.length, scene, jnp.broadcast_to(params["lengths"], jnp.shape(rod.length)))
+    if "youngs_modulus" in params:
+        E = jnp.broadcast_to(params["youngs_modulus"], jnp.shape(rod.youngs_modulus))
+        G = rod.shear_modulus * (E / rod.youngs_modulus)
+        scene = eqx.tree_at(lambda s: (s.legs.rod.youngs_modulus, s.legs.rod.shear_modulus), scene, (E, G))
+    if "platform_mass" in params:
+        body = scene.end.body
+        m = jnp.asarray(params["platform_mass"], jnp.float64)
+        scene = eqx.tree_at(lambda s: (s.end.body.mass, s.end.body.inertia), scene, (m, body.inertia * (m / body.mass)))
     if "push_force" in params:
         f = params["push_force"]
         if is_rod(scene):

@@ -2,7 +2,8 @@
 
 **Unknowns.** The physical parameters chosen with ``fit`` (``tau``: one damping time shared by
 the rods; ``tau_per_rod``; ``tau_split``: ``tau_se`` and ``tau_bt``, stretch-shear and
-bend-twist apart; ``lengths``: one per rod) and the experiment's nuisance parameters,
+bend-twist apart; ``lengths``: one per rod; ``youngs_modulus``, shared by the rods;
+``platform_mass``) and the experiment's nuisance parameters,
 always fitted: where the camera sees the robot at t = 0 (``start_position``, ``start_angle``;
 the pattern frame's offset and rotation follow, `frame_transform`) and its clock offset, plus,
 for a push-and-release, the push that was released (its force and moment). Positive parameters
@@ -33,7 +34,7 @@ from . import camera, experiment, robust
 from .least_squares import levenberg_marquardt
 from .recording import Recording, RecordingError
 
-PHYSICAL = ("tau", "tau_per_rod", "tau_split", "lengths")
+PHYSICAL = ("tau", "tau_per_rod", "tau_split", "lengths", "youngs_modulus", "platform_mass")
 DAMPING = ("tau", "tau_se", "tau_bt")  # the unknowns that are damping times
 NOMINAL_SIGMA = np.array([1e-9, 1e-9, 1e-6])  # noise scales (m, m, rad) of the first pass
 # The camera's unknowns: where it sees the robot's pose at t = 0 (the static equilibrium the
@@ -105,6 +106,8 @@ class Problem:
             unknowns += [Unknown("tau_se", 1, True, 1.0), Unknown("tau_bt", 1, True, 1.0)]
         if "lengths" in fit:
             unknowns.append(Unknown("lengths", n_rods, True, 1.0))
+        materials = experiment.material(self.scene, fit)
+        unknowns += [Unknown(k, 1, True, 1.0) for k in materials]
         if rec.experiment in ("push_release", "release"):
             unknowns.append(Unknown("push_force", 2, False, 1e-3))
             if not experiment.is_rod(self.scene):
@@ -129,7 +132,7 @@ class Problem:
         self._residual_and_jacobian = jax.jit(self._residual_and_jacobian_fn)
         self._linear_residual = jax.jit(self._linear_residual_fn)
         self._linear_jacobian = jax.jit(jax.jacfwd(self._linear_residual_fn))
-        self.initial_values = self._initial_values(nom, initial or {})
+        self.initial_values = self._initial_values({**nom, **materials}, initial or {})
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
@@ -205,7 +208,7 @@ class Problem:
 
     @property
     def measured(self) -> np.ndarray:
-        """Which entries of theta are the physical parameters asked for (damping, lengths), not
+        """Which entries of theta are the physical parameters asked for (damping, lengths, E, mass), not
         the nuisance ones (the released push, the camera)."""
         return np.concatenate([np.full(u.size, u.name not in NUISANCE) for u in self.unknowns])
 

@@ -426,20 +426,22 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     for name in ("tau", "lengths", "time_offset"):
         err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
         assert abs(res["values"][name] - truth[name]) < 3 * err, (name, res["values"][name], truth[name], err)
-    # one space refinement (2N at the fit's dt), then one time refinement (dt / 2 at 2N)
+    # one space refinement (2N at the fit's dt), then one time refinement (dt / 2); the space
+    # move is small, so it is the fit's grid's space error and time refines at the fit's N 6
     tol, space, step = res["refinements"]
     assert (tol["refit"], space["refit"], step["refit"]) == ("tolerance", "space", "time")
-    assert (space["nodes"], step["nodes"], step["dt"]) == (12, 12, pytest.approx(1e-3))
-    assert res["model"] == dict(nodes=12, dt=pytest.approx(1e-3), tol=step["tol"])
-    # each refit's values are listed; the reported ones are the finest model's, and their
-    # discretisation error combines the space refit's move from the fit's grid (the tolerance
-    # refit's neighbour) and the time refit's move from the space refit's
+    assert space["largest_move_se"] < 1 / 3
+    assert (space["nodes"], step["nodes"], step["dt"]) == (12, 6, pytest.approx(1e-3))
+    assert res["model"] == dict(nodes=6, dt=pytest.approx(1e-3), tol=step["tol"])
+    # each refit's values are listed; the reported ones are the last refit's, and their
+    # discretisation error combines the space and the time refit's moves, each from the fit's
+    # own values (the tolerance refit's, up to the tolerance error)
     assert step["values"] == res["values"] and set(tol["values"]) == set(res["values"])
     moves = (
         abs(space["values"]["lengths"] - tol["values"]["lengths"]),
-        abs(step["values"]["lengths"] - space["values"]["lengths"]),
+        abs(step["values"]["lengths"] - tol["values"]["lengths"]),
     )
-    assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.01 * res["tolerance_errors"]["lengths"] + 1e-15
+    assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.5 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
 
@@ -478,3 +480,98 @@ def test_a_push_far_from_the_recorded_one_is_reported_as_a_likely_wrong_minimum(
     assert _implausible_push(pb, theta) == ""
     theta[pb.slices["push_force"]] *= 4.0
     assert "wrong minimum" in _implausible_push(pb, theta)
+
+
+def test_youngs_modulus_scales_the_small_deflection_inversely():
+    """``--fit youngs_modulus``: E (and the shear modulus with it) of the rods. Oracle: linear
+    elasticity, where every stiffness scales with E: a cantilever's small static deflection
+    (2 mN at the tip, gravity off) is inversely proportional to E."""
+    rec = load_recording(f"{DATA}/cantilever_release.csv")
+    pb = Problem(rec, ("tau", "youngs_modulus"))
+    assert pb.labels()[:2] == ["tau", "youngs_modulus"]
+    E0 = float(pb.initial_values["youngs_modulus"])
+    sc = experiment.apply(pb.scene, {"push_force": jnp.array([0.0, -2e-3])})
+
+    def deflection(factor):
+        s = experiment.apply(sc, {"youngs_modulus": jnp.asarray(factor * E0)})
+        return float(pcrjax.solve_static(s).position[2])
+
+    d0, d1 = deflection(1.0), deflection(1.25)
+    assert d0 < 0 and d1 / d0 == pytest.approx(0.8, rel=1e-4)
+    G = experiment.apply(sc, {"youngs_modulus": jnp.asarray(1.25 * E0)}).legs.rod.shear_modulus
+    assert np.allclose(np.asarray(G), 1.25 * np.asarray(sc.legs.rod.shear_modulus), rtol=1e-14)
+
+
+def test_platform_mass_scales_the_platform_modes_by_its_square_root():
+    """``--fit platform_mass``: the platform's mass, its inertia with it. Oracle: a mass on
+    springs: the Triskele's rods weigh 1e-5 of the platform, so doubling the platform's mass
+    and inertia divides the frequencies of a simulated release by sqrt 2 (undamped, N 10,
+    dt 0.1 ms, modes read by the matrix pencil). A rod scene has no platform mass to fit."""
+    rec = load_recording(f"{DATA}/triskele_push_release.csv")
+    pb = Problem(rec, ("tau", "lengths", "platform_mass"))
+    m0 = float(pb.initial_values["platform_mass"])
+    sc = pcrjax.with_solver(pcrjax.load_scene("triskele"), nodes=10, dt=1e-4, alpha=-0.45, duration=0.15)
+
+    def frequencies(mass):
+        traj = pcrjax.simulate(experiment.apply(sc, {"platform_mass": jnp.asarray(mass)}))
+        m = np.asarray(experiment.planar_pose(sc, traj))[::5]  # 2 kHz
+        return modes.dominant(np.arange(m.shape[0]) * 5e-4, m, 2e3, 9, 100)[0][:2]
+
+    f1, f2 = frequencies(m0), frequencies(2 * m0)
+    for f in f1:  # the modes the push excites
+        assert f2[np.argmin(np.abs(f2 - f / np.sqrt(2)))] == pytest.approx(f / np.sqrt(2), rel=2e-3)
+    with pytest.raises(Exception, match="no platform"):
+        Problem(load_recording(f"{DATA}/cantilever_release.csv"), ("tau", "platform_mass"))
+
+
+def test_youngs_modulus_and_platform_mass_jacobian_columns_are_the_finite_differences():
+    """The Jacobian columns of the new unknowns (forward tangents through the rollout, each
+    Newton solve differentiated implicitly) against central differences of the residuals."""
+    rec = load_recording(f"{DATA}/triskele_push_release.csv").window(0.05)
+    pb = Problem(rec, ("tau", "youngs_modulus", "platform_mass")).refined(tol=1e-13)  # differences need a tight solve
+    th = np.asarray(pb.to_theta(pb.initial_values))
+    _, J = pb.residual_and_jacobian(th)
+    J = np.asarray(J)
+    h = 1e-4
+    for name in ("youngs_modulus", "platform_mass"):
+        i = pb.slices[name].start
+        e = np.zeros(th.size)
+        e[i] = h
+        fd = (np.asarray(pb.residual(th + e)) - np.asarray(pb.residual(th - e))) / (2 * h)
+        assert np.max(np.abs(fd)) > 1.0  # the recording sees it
+        print(name, np.max(np.abs(J[:, i] - fd)) / np.max(np.abs(fd)))
+        assert np.max(np.abs(J[:, i] - fd)) < 1e-5 * np.max(np.abs(fd)), name
+
+
+def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
+    """``pcrjax-identify --fit tau,youngs_modulus`` end to end on a small case (the default run):
+    a 0.2 s cantilever recording at 1 kHz, its E drawn at random within 10 % of the scene's and
+    simulated on a grid 3x finer in space and 5x in time than the fit's (N 6, dt 2 ms), fitted
+    from the scene's E and tau a factor 3 off, with one refinement: E and tau within 3 combined
+    uncertainties, and E printed in GPa."""
+    import importlib.util
+
+    from identify import cli
+
+    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
+    gen = importlib.util.module_from_spec(spec_file)
+    spec_file.loader.exec_module(gen)
+    spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
+    spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
+    spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
+    nominal_E = float(read_toml(scene_path("cantilever"))["rod"]["youngs_modulus"])
+    E = nominal_E * np.random.default_rng(29).uniform(0.9, 1.1)
+    spec["truth"] = dict(spec["truth"], lengths=0.4, youngs_modulus=E)  # the length is known: E alone sets the stiffness
+    spec["rod"] = dict(tau=3 * spec["truth"]["tau"])
+    path = gen.generate("small_release_E", spec, tmp_path)
+    out = tmp_path / "fit"
+    assert cli.main([str(path), "--out", str(out), "--fit", "tau,youngs_modulus", "--start", "given", "--refine", "1"]) == 0
+    printed = capsys.readouterr().out
+    print(printed)
+    assert "GPa" in printed
+    res = json.loads((out / "fit.json").read_text())
+    for name in ("tau", "youngs_modulus"):
+        err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
+        truth = spec["truth"][name]
+        assert abs(res["values"][name] - truth) < 3 * err, (name, res["values"][name], truth, err)
+        assert err < 0.01 * truth  # and pinned: E was 1-10 % off at the start
