@@ -11,18 +11,21 @@ fit the recording is refitted from the optimum:
    camera are nuisance parameters, their errors reported all the same) exceeds a third of its
    standard error, the finer answer is taken and the nodes doubled again, up to
    ``max_levels`` times;
-3. **time**: then with half the dt at the nodes step 2 settled on, the same way.
+3. **time**: then with half the dt, the same way, at the nodes step 2 settled on: the coarser
+   grid of the last space refit when its move was below a third of an SE (that move is the
+   coarser grid's space error, so the finer one need not be paid for again at every dt), else
+   the finest.
 
 The two are refined apart because one usually dominates, and each refit costs in proportion
 to nodes / dt: on the Triskele push-release (modes at 70-155 Hz, N 10, dt 0.5 ms) halving dt
 moved the lengths by up to 137 um and doubling N by up to 18 um.
 
-The reported values are those of the finest model evaluated, and the discretisation error
-beside each combines the last space move and the last time move in quadrature (for a
-convergent scheme, each a bound on the finest model's own error of that kind); if a last move
+The reported values are those of the last time refit, and the discretisation error beside each
+combines the last space move and the last time move in quadrature (for a convergent scheme,
+each about the error of the coarser of its two grids, so a bound on the finer's); if a last move
 of a measured parameter still exceeds a third of its standard error, the result says which.
 The noise levels were estimated from the fit's residuals, which hold the coarse grid's model
-error too; they and the standard errors are rescaled by the finest model's reduced chi-square
+error too; they and the standard errors are rescaled by the last refit's reduced chi-square
 (one factor for all columns), so the standard errors are the noise's alone.
 
 Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
@@ -52,8 +55,9 @@ WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did
 
 @dataclasses.dataclass(frozen=True)
 class Level:
-    """One refit: its model (nodes, dt, tol), the values there, their move from the previous
-    model in standard errors (per label), the reduced chi-square and the chord iterations."""
+    """One refit: its model (nodes, dt, tol), the values there, their move in standard errors
+    (per label) from the model it refines (``parent``: an index into the levels; None: the
+    fit's own), the reduced chi-square and the chord iterations."""
 
     what: str
     nodes: int
@@ -65,6 +69,7 @@ class Level:
     iterations: int
     wall_s: float
     problem: object = dataclasses.field(repr=False, compare=False, default=None)
+    parent: int | None = None
 
     def to_json(self) -> dict:
         return dict(
@@ -130,15 +135,15 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
     optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
     chi-square ``chi2``, its noise levels). Space: twice the nodes at the fit's dt, while the
     move of a measured parameter exceeds a third of a standard error, up to ``max_levels``
-    times; then time: half the dt at the nodes space settled on, the same way. Each move is in
-    the standard errors of its own model (rescaled by its reduced chi-square).
-    ``progress(message)``."""
+    times; then time: half the dt, the same way, at the coarser grid of a space move below a
+    third of an SE (else at the finest). Each move is in the standard errors of its own model
+    (rescaled by its reduced chi-square). ``progress(message)``."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
     levels, failed = [], []
 
-    def refit(what, n, h, base, windows):
+    def refit(what, n, h, base, windows, parent):
         t0 = time.perf_counter()
         if progress is not None:
             progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
@@ -156,23 +161,25 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             )
             return None
         move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
-        levels.append(Level(what, n, h, tl, th, move, chi2_here, it, time.perf_counter() - t0, fine))
+        levels.append(Level(what, n, h, tl, th, move, chi2_here, it, time.perf_counter() - t0, fine, parent))
         if progress is not None:
             progress(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
         return levels[-1]
 
     base = np.asarray(theta, float)
-    if refit("tolerance", nodes, dt, base, (None,)) is None:
+    if refit("tolerance", nodes, dt, base, (None,), None) is None:
         return levels, failed
-    n, h = nodes, dt  # the grid refinements start from the fit's own optimum
+    n, h, parent = nodes, dt, None  # the grid refinements start from the fit's own optimum
     for what in ("space", "time"):
         for _ in range(max_levels):
-            n, h = (2 * n, h) if what == "space" else (n, h / 2)
-            lv = refit(what, n, h, base, window_ends)
+            lv = refit(what, *((2 * n, h) if what == "space" else (n, h / 2)), base, window_ends, parent)
             if lv is None:
                 return levels, failed
-            base = lv.theta
-            if np.max(np.abs(lv.move_se[problem.measured])) <= THIRD:
+            settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
+            if settled and what == "space":  # the coarser grid's space error is this move: time refines there
+                break
+            n, h, base, parent = lv.nodes, lv.dt, lv.theta, len(levels) - 1
+            if settled:
                 break
     return levels, failed
 
@@ -183,7 +190,7 @@ def _difference(a: dict, b: dict) -> dict:
 
 def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,)):
     """``result`` (the `fit.Result` of ``problem`` at ``theta``, Jacobian ``J``) with the values
-    of the finest model evaluated by `refine`, their discretisation error (the last space and
+    of the last model `refine` evaluated, their discretisation error (the last space and
     the last time refinement's moves, combined in quadrature: the two errors add independently
     to leading order) and tolerance error, the model they come from and the refits made; its
     message says when a last refinement still moved a measured value (`Problem.measured`) by
@@ -197,13 +204,13 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
     at_fit = problem.reported(theta)
 
-    def reported(i):  # values of level i; before the grid refinements, the fit's
-        return at_fit if i == 0 else levels[i].problem.reported(levels[i].theta)
+    def reported(i):  # values of level i; None: the fit's
+        return at_fit if i is None else levels[i].problem.reported(levels[i].theta)
 
     squared, notes = None, []
     for what, idx in chains.items():
         last = levels[idx[-1]]
-        moved = _difference(reported(idx[-1]), reported(idx[-1] - 1))
+        moved = _difference(reported(idx[-1]), reported(last.parent))
         squared = {k: v**2 for k, v in moved.items()} if squared is None else {k: squared[k] + v**2 for k, v in moved.items()}
         moves = np.where(problem.measured, np.abs(last.move_se), 0.0)
         worst = float(np.max(moves))
@@ -217,7 +224,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
             )
     message = " ".join([message, *notes]).strip()
     finest = levels[-1]
-    noise = np.sqrt(finest.chi2 / result.loss)  # the residuals' scale on the finest model vs the fit's
+    noise = np.sqrt(finest.chi2 / result.loss)  # the residuals' scale on the last model vs the fit's
     return dataclasses.replace(
         result,
         values=_plain(finest.problem.reported(finest.theta)),

@@ -70,9 +70,11 @@ def test_refits_reach_each_finer_models_own_optimum_space_then_time():
     assert not failed
     grids = [(lv.what, lv.nodes, lv.dt) for lv in levels]
     # nodes doubled at the fit's dt, then dt halved at the nodes space settled on
+    # (no space move settled below a third of an SE, so time refines at the finest nodes)
     assert grids == [("tolerance", 10, 0.1), ("space", 20, 0.1), ("space", 40, 0.1), ("time", 40, 0.05), ("time", 40, 0.025)], (
         grids
     )
+    assert [lv.parent for lv in levels] == [None, None, 1, 2, 3]
     for lv in levels[1:]:
         # the refit stops when a step gains less than a parameter 0.05 SE off would add;
         # measured: within 0.0011 SE of the closed form, every move above a third of an SE
@@ -109,3 +111,7 @@ def test_only_the_measured_parameters_decide_the_refinement():
     levels, failed = discretisation.refine(coarse, theta, coarse.A / SIGMA, se, max_levels=2, chi2=chi2)
     assert not failed and [lv.what for lv in levels] == ["tolerance", "space", "time"]
     assert abs(levels[1].move_se[2]) > 10 and np.all(np.abs(levels[1].move_se[:2]) < 1 / 3)
+    # space settled at the fit's 10 nodes (the move to 20 is their error): time refines there,
+    # from the fit's own optimum
+    assert (levels[2].nodes, levels[2].dt, levels[2].parent) == (10, 0.05, None)
+    assert np.all(np.abs(levels[2].theta - Nuisance(10, 0.05).optimum()) < 0.05 * se)
