@@ -1,10 +1,11 @@
-"""`pcrjax-identify RECORDING.csv --fit tau,lengths [--scene S] --out DIR`.
+"""`pcrjax-identify RECORDING.csv [MORE.csv ...] --fit tau,lengths [--scene S] [--cluster C] --out DIR`.
 
 Writes ``DIR/fit.json`` (values, standard errors, correlation, noise estimates, final loss,
 iterations, wall time, outlier frames), ``DIR/fit_time.png`` (measured vs simulated x, y, theta over time),
 ``DIR/fit_plane.png`` (the path in the plane, like thesis Figure 5.7), ``DIR/residuals.png`` and
 ``DIR/loss.png``; progress is printed while it runs and saved in ``DIR`` so that an interrupted
 fit resumes where it stopped. Bad input prints one line naming the cause and exits with status 2.
+Several recordings: each as alone into ``DIR/<its name>/``, here or on a Dask cluster (`batch`).
 """
 
 from __future__ import annotations
@@ -22,7 +23,12 @@ from pcrjax import SceneError
 
 def _parser():
     p = argparse.ArgumentParser(prog="pcrjax-identify", description="Fit damping and rod lengths to a recorded motion.")
-    p.add_argument("recording", help="CSV t_s,x_m,y_m,theta_rad (with its TOML sidecar, or --scene)")
+    p.add_argument(
+        "recording",
+        nargs="+",
+        help="CSV t_s,x_m,y_m,theta_rad (with its TOML sidecar, or --scene); several: each fitted into DIR/<its name>/, "
+        "with a summary in DIR/fits.csv",
+    )
     p.add_argument(
         "--fit",
         default="tau,lengths",
@@ -45,6 +51,11 @@ def _parser():
         default=2,
         metavar="LEVELS",
         help="refinements of the grid that measure the discretisation error, at most, in space (2x nodes each) and then in time (dt/2 each) (default 2; 0: none)",
+    )
+    p.add_argument(
+        "--cluster",
+        help="fit the recordings as tasks on Dask: 'local' (a worker per core), 'local:W' or a scheduler address "
+        "(tcp://host:8786; every worker needs pcrjax installed); default: one after another in this process",
     )
     return p
 
@@ -242,6 +253,14 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     pcrjax.config.configure()
     try:
+        if len(args.recording) > 1 or args.cluster is not None:
+            from .batch import fit_all
+
+            rows = fit_all(vars(args), args.recording, args.cluster)
+            failed = [r["recording"] for r in rows if r["status"] == "failed"]
+            print(f"{len(rows) - len(failed)} of {len(rows)} fits ran; summary in {Path(args.out) / 'fits.csv'}")
+            return 1 if failed else 0
+        args.recording = args.recording[0]
         run(args)
     except (RecordingError, SceneError, ValueError) as e:
         print(f"pcrjax-identify: error: {e}", file=sys.stderr)

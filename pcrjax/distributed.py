@@ -1,4 +1,5 @@
-"""Sweeps on a Dask cluster: each batch of members is one task on a worker process.
+"""Work on a Dask cluster: each batch of a sweep's members, or each recording of a set of
+identification fits, is one task on a worker process.
 
 Dask distributed rather than Ray: it is pure Python (nothing to build, one wheel on every
 platform), its `LocalCluster` starts worker processes on this machine with no setup, and a real
@@ -47,9 +48,11 @@ def _task(data, source, keys, rows, size, budget):
     return run_members(_scenes(data, source, keys, rows), size, budget)
 
 
-def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect, budget: int | None = None) -> dict:
-    """Submit each job (members, batch size) as a task; ``collect(members, result)`` as each
-    finishes (any order). Returns how it ran: kind, workers, wall seconds."""
+def map_tasks(cluster: str, fn, tasks, collect) -> dict:
+    """Run ``fn(*args)`` for each ``(key, args)`` of ``tasks`` as one task on the Dask cluster
+    (``parse``); ``collect(key, result)`` as each finishes (any order). ``fn`` must be importable
+    by the workers and its arguments and result picklable. Returns how it ran: kind, workers,
+    wall seconds."""
     kind, arg = parse(cluster)
     try:
         from dask.distributed import Client, LocalCluster, as_completed
@@ -72,9 +75,7 @@ def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect,
         raise SceneError(f"--cluster {cluster!r}: cannot start or reach the Dask cluster: {e}") from None
     try:
         workers = len(client.scheduler_info()["workers"])
-        futures = {
-            client.submit(_task, data, source, keys, values[members], size, budget, pure=False): members for members, size in jobs
-        }
+        futures = {client.submit(fn, *args, pure=False): key for key, args in tasks}
         for fut in as_completed(futures):
             collect(futures[fut], fut.result())
     finally:
@@ -82,3 +83,10 @@ def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect,
         if local is not None:
             local.close()
     return {"kind": kind, "address": arg if kind == "address" else None, "workers": workers, "wall_s": time.perf_counter() - t0}
+
+
+def run_jobs(cluster: str, data: dict, source: str, keys, values, jobs, collect, budget: int | None = None) -> dict:
+    """A sweep's jobs (members, batch size), each as one task (`map_tasks`);
+    ``collect(members, result)`` as each finishes."""
+    tasks = [(tuple(members), (data, source, keys, values[members], size, budget)) for members, size in jobs]
+    return map_tasks(cluster, _task, tasks, lambda key, result: collect(list(key), result))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import types
+from pathlib import Path
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -575,3 +576,46 @@ def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
         truth = spec["truth"][name]
         assert abs(res["values"][name] - truth) < 3 * err, (name, res["values"][name], truth, err)
         assert err < 0.01 * truth  # and pinned: E was 1-10 % off at the start
+
+
+def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_path, capsys):
+    """``pcrjax-identify A.csv B.csv --out DIR [--cluster local:2]``: two small cantilever
+    recordings (0.1 s, other truths, simulated 3x finer in space and 5x in time than the fit's
+    grid), each fitted into its own folder with a summary row in fits.csv; on two Dask worker
+    processes the values equal this process's to the last digit (the same programs on the same
+    inputs). A bad recording among them stops the command before any fit, with one line."""
+    pytest.importorskip("dask.distributed")
+    import importlib.util
+
+    from identify import cli
+
+    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
+    gen = importlib.util.module_from_spec(spec_file)
+    spec_file.loader.exec_module(gen)
+    paths = []
+    for name, tau in (("small_a", 1.5e-3), ("small_b", 3e-3)):
+        spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.1)
+        spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
+        spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
+        spec["truth"] = dict(spec["truth"], tau=tau)
+        paths.append(str(gen.generate(name, spec, tmp_path)))
+    argv = [*paths, "--start", "given", "--refine", "0"]
+    assert cli.main([*argv, "--out", str(tmp_path / "here")]) == 0
+    assert cli.main([*argv, "--out", str(tmp_path / "dask"), "--cluster", "local:2"]) == 0
+    here, there = (json.loads((tmp_path / d / "fits.json").read_text()) for d in ("here", "dask"))
+    assert [r["recording"] for r in here] == paths == [r["recording"] for r in there]
+    for a, b in zip(here, there, strict=True):
+        assert a["status"] == b["status"] == "converged"
+        assert a["values"] == b["values"] and a["standard_errors"] == b["standard_errors"]
+        assert (tmp_path / "dask" / Path(a["recording"]).stem / "fit.json").is_file()
+    rows = (tmp_path / "here" / "fits.csv").read_text().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("recording,status,reduced_chi2,wall_s,tau,tau_se,tau_disc,lengths")
+    taus = [r["values"]["tau"] for r in here]
+    assert taus[1] > 1.5 * taus[0]  # each its own truth
+    capsys.readouterr()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,x_m,y_m,theta_rad\n0.0,0,0,0\n")
+    assert cli.main([paths[0], str(bad), "--out", str(tmp_path / "bad_out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.csv" in err[0], err
+    assert not (tmp_path / "bad_out" / "fits.csv").exists()
