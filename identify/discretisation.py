@@ -31,8 +31,11 @@ error too; they and the standard errors are rescaled by the last refit's reduced
 Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
 the coarse model, each step taken only where it lowers the cost): a finer grid moves the
 residuals by far more than their derivatives, so an iteration costs one forward rollout on the
-finer grid and no tangents. A grid refit runs over the fit's windows of growing length, since
-the coarse answer can be cycles of phase off the finer grid's over a whole recording. A refit
+finer grid and no tangents. The first refit of each chain runs over the fit's windows of
+growing length, since the coarse answer can be cycles of phase off the finer grid's over a whole
+recording; a later one starts where the chain's order predicts the optimum (the last move
+shrunk by 2**order) and fits the whole recording at once, falling back to the windows from the
+coarser optimum if that fails. A refit
 that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it is
 reported as failed and its values are not used.
 """
@@ -51,6 +54,7 @@ TOL_FACTOR = 0.1
 CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
 STILL = 0.05  # a refit ends when a step gains less than a parameter this many standard errors off
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
+ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,25 +147,36 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
     levels, failed = [], []
 
-    def refit(what, n, h, base, windows, parent):
+    def refit(what, n, h, base, windows, parent, predicted=None):
         t0 = time.perf_counter()
         if progress is not None:
             progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
-        try:
-            th, cost, it = chord_refit(fine, base, J, windows)
-        except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
-            failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
-            return None
-        chi2_here = 2 * cost / max(m, 1)
-        if chi2_here > WORSE * chi2:  # a finer model fits worse than the coarse one: a wrong minimum
-            failed.append(
-                f"the refit with {n} nodes, dt {h:.3g} s reached a reduced chi-square of {chi2_here:.3g} against the fit's "
-                f"{chi2:.3g}: it did not find that model's optimum, so its {what} error is not measured"
-            )
-            return None
+        # from the predicted optimum over the whole recording at once; else (or if that fails)
+        # from the coarser optimum through the windows
+        tries = ([(predicted, (None,))] if predicted is not None else []) + [(base, windows)]
+        iterations = 0
+        for k, (start, ends) in enumerate(tries):
+            last = k == len(tries) - 1
+            try:
+                th, cost, it = chord_refit(fine, start, J, ends)
+            except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
+                if last:
+                    failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
+                    return None
+                continue
+            iterations += it
+            chi2_here = 2 * cost / max(m, 1)
+            if chi2_here <= WORSE * chi2:
+                break
+            if last:  # a finer model fits worse than the coarse one: a wrong minimum
+                failed.append(
+                    f"the refit with {n} nodes, dt {h:.3g} s reached a reduced chi-square of {chi2_here:.3g} against the fit's "
+                    f"{chi2:.3g}: it did not find that model's optimum, so its {what} error is not measured"
+                )
+                return None
         move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
-        levels.append(Level(what, n, h, tl, th, move, chi2_here, it, time.perf_counter() - t0, fine, parent))
+        levels.append(Level(what, n, h, tl, th, move, chi2_here, iterations, time.perf_counter() - t0, fine, parent))
         if progress is not None:
             progress(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
         return levels[-1]
@@ -171,14 +186,16 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
         return levels, failed
     n, h, parent = nodes, dt, None  # the grid refinements start from the fit's own optimum
     for what in ("space", "time"):
+        step = None  # the chain's last move
         for _ in range(max_levels):
-            lv = refit(what, *((2 * n, h) if what == "space" else (n, h / 2)), base, window_ends, parent)
+            predicted = None if step is None else base + step / 2 ** ORDER[what]
+            lv = refit(what, *((2 * n, h) if what == "space" else (n, h / 2)), base, window_ends, parent, predicted)
             if lv is None:
                 return levels, failed
             settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
             if settled and what == "space":  # the coarser grid's space error is this move: time refines there
                 break
-            n, h, base, parent = lv.nodes, lv.dt, lv.theta, len(levels) - 1
+            n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
                 break
     return levels, failed

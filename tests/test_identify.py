@@ -30,6 +30,16 @@ from pcrjax.io.scene_file import read_toml, scene_from_dict, scene_path
 DATA = "experiments_data"
 
 
+def _generator():
+    """``experiments_data/generate.py`` as a module (it is a script, not a package)."""
+    import importlib.util
+
+    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
+    gen = importlib.util.module_from_spec(spec_file)
+    spec_file.loader.exec_module(gen)
+    return gen
+
+
 def test_matrix_pencil_finds_damped_modes_through_missing_frames():
     fs = 114.44
     t = np.arange(230) / fs
@@ -354,11 +364,7 @@ def test_recording_with_the_scenes_own_values_fits_back_unchanged(tmp_path):
     """A recording generated with the scene's own damping, length and push (the cantilever's
     sidecar values) fitted from those values: the fit must return them (no drift away from a
     start that is already the truth) with the loss at the noise level."""
-    import importlib.util
-
-    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
-    gen = importlib.util.module_from_spec(spec_file)
-    spec_file.loader.exec_module(gen)
+    gen = _generator()
     spec = dict(gen.RECORDINGS["cantilever_release"])
     truth = dict(
         spec["truth"], tau=spec["rod"]["tau"], lengths=0.4, push_force=[spec["tip"]["force"][0], spec["tip"]["force"][2]]
@@ -398,13 +404,9 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, one space
     and one time refinement, fit.json and the plots), with 2 % of its frames thrown off by decoding errors:
     every truth within 3 combined uncertainties, and the wild frames reported."""
-    import importlib.util
-
     from identify import cli
 
-    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
-    gen = importlib.util.module_from_spec(spec_file)
-    spec_file.loader.exec_module(gen)
+    gen = _generator()
     spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
     spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
     spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
@@ -550,13 +552,9 @@ def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
     simulated on a grid 3x finer in space and 5x in time than the fit's (N 6, dt 2 ms), fitted
     from the scene's E and tau a factor 3 off, with one refinement: E and tau within 3 combined
     uncertainties, and E printed in GPa."""
-    import importlib.util
-
     from identify import cli
 
-    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
-    gen = importlib.util.module_from_spec(spec_file)
-    spec_file.loader.exec_module(gen)
+    gen = _generator()
     spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
     spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
     spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
@@ -585,13 +583,9 @@ def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_pa
     processes the values equal this process's to the last digit (the same programs on the same
     inputs). A bad recording among them stops the command before any fit, with one line."""
     pytest.importorskip("dask.distributed")
-    import importlib.util
-
     from identify import cli
 
-    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
-    gen = importlib.util.module_from_spec(spec_file)
-    spec_file.loader.exec_module(gen)
+    gen = _generator()
     paths = []
     for name, tau in (("small_a", 1.5e-3), ("small_b", 3e-3)):
         spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.1)
