@@ -581,7 +581,8 @@ def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_pa
     recordings (0.1 s, other truths, simulated 3x finer in space and 5x in time than the fit's
     grid), each fitted into its own folder with a summary row in fits.csv; on two Dask worker
     processes the values equal this process's to the last digit (the same programs on the same
-    inputs). A bad recording among them stops the command before any fit, with one line."""
+    inputs). A recording whose fit fails is marked and the others run (exit 1); a recording that
+    cannot be read stops the command before any fit, with one line."""
     pytest.importorskip("dask.distributed")
     from identify import cli
 
@@ -593,17 +594,25 @@ def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_pa
         spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
         spec["truth"] = dict(spec["truth"], tau=tau)
         paths.append(str(gen.generate(name, spec, tmp_path)))
-    argv = [*paths, "--start", "given", "--refine", "0"]
-    assert cli.main([*argv, "--out", str(tmp_path / "here")]) == 0
-    assert cli.main([*argv, "--out", str(tmp_path / "dask"), "--cluster", "local:2"]) == 0
+    # a recording whose sidecar the scene refuses (a negative radius): read fine, its fit fails
+    broken = tmp_path / "broken.csv"
+    broken.write_text(Path(paths[0]).read_text())
+    side = Path(paths[0]).with_suffix(".toml").read_text()
+    broken.with_suffix(".toml").write_text(side.replace("[rod]\n", "[rod]\nradius = -0.001\n", 1))
+    argv = ["--start", "given", "--refine", "0"]
+    assert cli.main([*paths, str(broken), *argv, "--out", str(tmp_path / "here")]) == 1  # one failed
+    assert cli.main([*paths, *argv, "--out", str(tmp_path / "dask"), "--cluster", "local:2"]) == 0
     here, there = (json.loads((tmp_path / d / "fits.json").read_text()) for d in ("here", "dask"))
+    assert here[2]["status"] == "failed" and "radius" in here[2]["message"]  # marked, and the others ran
+    here = here[:2]
     assert [r["recording"] for r in here] == paths == [r["recording"] for r in there]
     for a, b in zip(here, there, strict=True):
         assert a["status"] == b["status"] == "converged"
         assert a["values"] == b["values"] and a["standard_errors"] == b["standard_errors"]
         assert (tmp_path / "dask" / Path(a["recording"]).stem / "fit.json").is_file()
     rows = (tmp_path / "here" / "fits.csv").read_text().splitlines()
-    assert len(rows) == 3 and rows[0].startswith("recording,status,reduced_chi2,wall_s,tau,tau_se,tau_disc,lengths")
+    assert len(rows) == 4 and rows[0].startswith("recording,status,reduced_chi2,wall_s,tau,tau_se,tau_disc,lengths")
+    assert rows[3].split(",")[1] == "failed"
     taus = [r["values"]["tau"] for r in here]
     assert taus[1] > 1.5 * taus[0]  # each its own truth
     capsys.readouterr()
