@@ -35,11 +35,7 @@ finer grid and no tangents. The first refit of each chain runs over the fit's wi
 growing length, since the coarse answer can be cycles of phase off the finer grid's over a whole
 recording; a later one starts where the chain's order predicts the optimum (the last move
 shrunk by 2**order) and fits the whole recording at once, falling back to the windows from the
-coarser optimum if that fails. The held Jacobian's fixed point is not the finer grid's optimum
-where the two grids' Jacobians differ much (they do: on triskele_push_release_r1 at N 20, dt
-0.25 ms, the lengths' columns differ by 120-270 % from the fit's, and the held-Jacobian answer
-was up to 0.9 SE off the optimum), so each grid refit ends with the finer grid's own Jacobian
-(`polished`: one or two evaluations, each held for a further refit). A refit
+coarser optimum if that fails. A refit
 that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it is
 reported as failed and its values are not used.
 """
@@ -47,7 +43,6 @@ reported as failed and its values are not used.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 
 import numpy as np
@@ -59,7 +54,6 @@ TOL_FACTOR = 0.1
 CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
 STILL = 0.05  # a refit ends when a step gains less than a parameter this many standard errors off
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
-POLISH = 2  # Jacobians of a refined grid evaluated, at most, to carry a refit to its optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
 
 
@@ -139,28 +133,6 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     return theta, 0.5 * float(r @ r), total
 
 
-def polished(problem, theta, se_theta, times: int = POLISH):
-    """(theta, cost, iterations): a refit's answer carried to ``problem``'s own optimum. The held
-    Jacobian of another grid has its own fixed point (J_held^T r = 0), which is not this grid's
-    optimum where the grids' Jacobians differ (a finer dt moves the phase of every mode, and with
-    it the lengths' columns, by more than their size on a 2 s Triskele recording: answers up to an
-    SE off). So the Jacobian of this grid is evaluated at the answer and held for a further
-    refit, ``times`` times at most, until the answer moves less than ``STILL`` standard errors."""
-    theta = np.asarray(theta, float)
-    cost, total = math.inf, 0
-    for _ in range(times):
-        r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
-        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-            raise FitError("the refined model's Jacobian is not finite at the refit's answer")
-        new, cost, it = chord_refit(problem, theta, J)
-        total += it
-        moved = np.max(np.abs(new - theta) / np.maximum(se_theta, 1e-300))
-        theta = new
-        if moved < STILL:
-            break
-    return theta, cost, total
-
-
 def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,)):
     """(the `Level` list: the tolerance refit first, then the space refits, then the time
     refits; the failures: a refit that failed ends the list) for the fit ``problem`` at its
@@ -188,9 +160,6 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             last = k == len(tries) - 1
             try:
                 th, cost, it = chord_refit(fine, start, J, ends)
-                if what != "tolerance":  # (the fit's own grid: its Jacobian is this model's)
-                    th, cost, more = polished(fine, th, se_theta)
-                    it += more
             except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
                 if last:
                     failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
