@@ -35,7 +35,9 @@ finer grid and no tangents. The first refit of each chain runs over the fit's wi
 growing length, since the coarse answer can be cycles of phase off the finer grid's over a whole
 recording; a later one starts where the chain's order predicts the optimum (the last move
 shrunk by 2**order) and fits the whole recording at once, falling back to the windows from the
-coarser optimum if that fails. A refit
+coarser optimum if that fails. The held Jacobian's fixed point (J_held^T r = 0) is the finer
+grid's optimum only where the two grids' Jacobians agree; where a finer dt moves the phase of a
+long recording's modes they do not, and a move is then known only to about that difference. A refit
 that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it is
 reported as failed and its values are not used.
 """
