@@ -223,14 +223,17 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
     at_fit = problem.reported(theta)
 
-    def reported(i):  # values of level i; None: the fit's
-        return at_fit if i is None else levels[i].problem.reported(levels[i].theta)
+    values = {None: at_fit}  # level index -> its reported values (a short rollout each); None: the fit's
 
-    squared, notes = None, []
+    def reported(i):
+        if i not in values:
+            values[i] = levels[i].problem.reported(levels[i].theta)
+        return values[i]
+
+    moved, notes = {}, []
     for what, idx in chains.items():
         last = levels[idx[-1]]
-        moved = _difference(reported(idx[-1]), reported(last.parent))
-        squared = {k: v**2 for k, v in moved.items()} if squared is None else {k: squared[k] + v**2 for k, v in moved.items()}
+        moved[what] = _difference(reported(idx[-1]), reported(last.parent))
         moves = np.where(problem.measured, np.abs(last.move_se), 0.0)
         worst = float(np.max(moves))
         if worst > THIRD:
@@ -246,13 +249,13 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     noise = np.sqrt(finest.chi2 / result.loss)  # the residuals' scale on the last model vs the fit's
     return dataclasses.replace(
         result,
-        values=_plain(finest.problem.reported(finest.theta)),
+        values=_plain(reported(len(levels) - 1)),
         standard_errors={
             k: (np.asarray(e) * noise).tolist() if np.size(e) > 1 else float(e) * noise for k, e in result.standard_errors.items()
         },
         sigma=[s * float(noise) for s in result.sigma],
-        discretisation_errors=_plain({k: np.sqrt(v) for k, v in squared.items()}),
-        tolerance_errors=_plain(_difference(levels[0].problem.reported(levels[0].theta), at_fit)),
+        discretisation_errors=_plain({k: np.hypot(moved["space"][k], moved["time"][k]) for k in at_fit}),
+        tolerance_errors=_plain(_difference(reported(0), at_fit)),
         model=dict(nodes=finest.nodes, dt=finest.dt, tol=finest.tol),
         refinements=[lv.to_json() for lv in levels],
         message=message,
