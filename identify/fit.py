@@ -106,10 +106,10 @@ def modal_start(
     return best, dict(window=t_screen, candidates=len(ranked), iterations=iterations, history=best_hist)
 
 
-# The whole recording's passes stop when an iteration lowers the loss by less than 1e-3 of the
-# current reduced chi-square (relative decrease < FINAL_FTOL / residuals): 0.5 (delta / SE)^2 is
-# what a parameter delta off the optimum adds to a loss whitened by the noise, so the parameters
-# then lie within about 0.05 SE of the optimum.
+# The whole recording's passes stop when the Gauss-Newton decrement (what the linearised problem
+# could still gain) is below 1e-3 of the current reduced chi-square (relative to the loss:
+# FINAL_FTOL / residuals): 0.5 (delta / SE)^2 is what a parameter delta off the optimum adds to a
+# loss whitened by the noise, so the parameters then lie within about 0.05 SE of the optimum.
 FINAL_FTOL = 2e-3
 
 
