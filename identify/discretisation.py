@@ -37,7 +37,13 @@ recording; a later one starts where the chain's order predicts the optimum (the 
 shrunk by 2**order) and fits the whole recording at once, falling back to the windows from the
 coarser optimum if that fails. The held Jacobian's fixed point (J_held^T r = 0) is the finer
 grid's optimum only where the two grids' Jacobians agree; where a finer dt moves the phase of a
-long recording's modes they do not, and a move is then known only to about that difference. A refit
+long recording's modes they do not, and a move is then known only to about that difference (on
+`triskele_push_release_r1` at 20 nodes, dt 0.25 ms: 0.9 standard errors from the optimum that
+Levenberg-Marquardt with that grid's own Jacobians reaches from the chord's answer). Refits with
+each grid's own Jacobians are not the cure there: that recording's loss has two basins of nearly
+equal cost (0.3 apart at dt 0.25 ms) whose lengths differ by 300 um, and at 20 nodes, dt 0.5 ms
+an exact refit leaves the fit's basin for the other (which holds no truth: it ends 350 um, six
+times the fit's standard error, off); the held Jacobian keeps the chain in the fit's. A refit
 that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it is
 reported as failed and its values are not used.
 """
