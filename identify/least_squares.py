@@ -86,9 +86,12 @@ def levenberg_marquardt(
         scale = np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
         for _ in range(12):
             step = _damped_step(model, scale, g, lam)
-            while step is None or np.any(np.abs(step) > max_step):  # raise the damping until the step fits the region
+            # raise the damping until the step fits the region (and the model is definite)
+            while (step is None or np.any(np.abs(step) > max_step)) and lam < 1e30:
                 lam *= 4.0
                 step = _damped_step(model, scale, g, lam)
+            if step is None:  # no damping makes the model definite (a non-finite Jacobian): no step to try
+                break
             r_t = np.asarray(rf(jnp.asarray(theta + step)))
             cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
             if cost_t < cost:
@@ -102,6 +105,8 @@ def levenberg_marquardt(
         theta = theta + step
         lam = max(lam / 10.0, 1e-12)
         r_new, J_new = (np.asarray(a) for a in rj(jnp.asarray(theta)))
+        if not (np.all(np.isfinite(r_new)) and np.all(np.isfinite(J_new))):
+            raise FitError("the Jacobian at an accepted step is not finite (its tangent solves did not converge)")
         S = _secant_update(S, step, J_new.T @ r_new - g, (J_new - J).T @ r_new)
         r, J = r_new, J_new
         cost = 0.5 * float(r @ r)

@@ -224,6 +224,12 @@ def test_levenberg_marquardt_refuses_a_start_where_the_model_fails():
     not returned as a converged fit."""
     with pytest.raises(FitError, match="not finite"):
         levenberg_marquardt(lambda th: np.full(3, np.nan), lambda th: (np.full(3, np.nan), np.ones((3, 1))), np.zeros(1))
+    # nor a Jacobian that turns non-finite after a step (its tangents failed)
+    rf = lambda th: np.array([th[0] - 1.0, th[0] + 1.0])  # noqa: E731
+    for bad in (np.nan, np.inf):
+        rj = lambda th, bad=bad: (rf(th), np.full((2, 1), 1.0 if th[0] == 0.5 else bad))  # noqa: E731
+        with pytest.raises(FitError, match="not finite"):
+            levenberg_marquardt(rf, rj, np.array([0.5]), 10, max_step=np.inf)
 
 
 def _large_residual_problem(curvature=(-0.9, -0.5), angle=0.6):
