@@ -60,7 +60,7 @@ from .least_squares import FitError, levenberg_marquardt, standard_errors_theta
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
 CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
-STILL = 0.05  # a refit ends when a step gains less than a parameter this many standard errors off
+STILL = 0.05  # a refit ends when its linearisation puts the parameters this many standard errors from its optimum
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
 
@@ -112,8 +112,9 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     Levenberg-Marquardt steps with that Jacobian, each taken only where it lowers the cost, over
     windows ending at ``window_ends`` (the fit's continuation: a coarse grid's answer can be
     cycles of phase off over a long recording, as the Triskele's 150 Hz modes are at dt 0.5 ms),
-    each from the previous one's answer. The whole recording's refit stops when a step lowers
-    the cost by less than a parameter ``STILL`` standard errors off the optimum would add.
+    each from the previous one's answer. The whole recording's refit stops when the held
+    Jacobian's Gauss-Newton decrement puts the parameters within ``STILL`` standard errors of
+    its fixed point (`levenberg_marquardt`'s test).
     Raises `FitError` where the refined model's rollout fails."""
     theta = np.asarray(theta, float)
     total = 0
