@@ -73,7 +73,7 @@ def levenberg_marquardt(
         )
     if not history:
         history.append(cost)
-    converged = _decrement(J, r) < ftol * cost
+    converged = decrement(J, r) < ftol * cost
     it = it0
     for it in range(it0 + 1, max_iter + 1):
         if converged:
@@ -115,11 +115,11 @@ def levenberg_marquardt(
             save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist()))
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
-        converged = _decrement(J, r) < ftol * cost or np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
+        converged = decrement(J, r) < ftol * cost or np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
     return theta, J, r, it, converged, history
 
 
-def _decrement(J, r) -> float:
+def decrement(J, r) -> float:
     """``0.5 g^T (J^T J)^+ g``, g = J^T r: what the Gauss-Newton step would gain on the linearised
     problem (the columns scaled to unit norm for the pseudo-inverse)."""
     g = J.T @ r

@@ -34,6 +34,8 @@ class Result:
     tolerance_errors: dict = dataclasses.field(default_factory=dict)
     model: dict = dataclasses.field(default_factory=dict)  # nodes, dt, tol
     refinements: list = dataclasses.field(default_factory=list)
+    # name -> the loss's profile along each measured value at the fit's grid (`profile.report`)
+    profiles: dict = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)

@@ -443,9 +443,10 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     """The whole `pcrjax-identify` path on a small case, in the default run: a cantilever
     recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 5x in
     time than the fit's (N 6, dt 2 ms), fitted from tau a factor 3 off and the length 1.6 mm off
-    (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, one space
-    and one time refinement, fit.json and the plots), with 2 % of its frames thrown off by decoding errors:
-    every truth within 3 combined uncertainties, and the wild frames reported."""
+    (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, the
+    profiles, one space and one time refinement, fit.json and the plots), with 2 % of its frames
+    thrown off by decoding errors: every truth within 3 combined uncertainties, and the wild
+    frames reported."""
     from identify import cli
 
     gen = _generator()
@@ -461,11 +462,19 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     pose[wild, :2] += 5e-3 * np.array([1.0, -1.0])
     write_frames(path, rec.t, pose)
     out = tmp_path / "fit"
-    assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "1"]) == 0
+    assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "1", "--profile"]) == 0
     printed = capsys.readouterr().out
     print(printed)
     assert "± statistical (noise), ± discretisation" in printed
     res = json.loads((out / "fit.json").read_text())
+    # the profiles at the fit's grid: this small problem's loss is nearly quadratic, so each
+    # 68 % interval is about the fit's value ± its standard error, and the fit is at its minimum
+    assert set(res["profiles"]) == {"tau", "lengths"} and "68 % profile interval" in printed
+    for name, pr in res["profiles"].items():
+        fitted = res["refinements"][0]["values"][name]  # the tolerance refit: the fit's grid
+        se = res["standard_errors"][name]
+        assert abs(pr["drop"]) < 0.05 and pr["lower"] < fitted < pr["upper"], (name, pr, fitted)
+        assert abs(0.5 * (pr["upper"] - pr["lower"]) / se - 1) < 0.2, (name, pr, se)
     assert np.allclose(sorted(res["outliers"]), np.sort(rec.t[wild])), (res["outliers"], np.sort(rec.t[wild]))
     truth = spec["truth"]
     for name in ("tau", "lengths", "time_offset"):
