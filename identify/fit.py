@@ -301,7 +301,7 @@ def fit(
             if progress is None
             else (lambda label, v, c: progress(f"profile of {label} at {v:.6g}: loss {c:+.3g} from the fit's", 0, None, 0.0))
         )
-        found = profile.report(problem, pb, theta, J, r, result.loss, standard_errors_theta(J, result.loss), say)
+        found = profile.report(pb, theta, J, r, result.loss, standard_errors_theta(J, result.loss), say)
         result = dataclasses.replace(result, profiles=found)
     if refine_levels > 0:
         result = discretisation.report(

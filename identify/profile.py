@@ -120,7 +120,9 @@ def profile(rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, m
             )
         except FitError:
             return None
-        if not converged or decrement(jac_y, r_y) > tol * cost0:  # stalled: no step lowered the cost
+        # out of iterations, or stopped where no damped step lowered the cost (which the fitter
+        # also calls converged) with the linearised problem still gaining more than tol
+        if not converged or decrement(jac_y, r_y) > tol * cost0:
             return None
         cost = 0.5 * float(r_y @ r_y)
         if progress is not None:
@@ -185,26 +187,26 @@ def profile(rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, m
     )
 
 
-def report(problem, pb, theta, J, r, chi2: float, se_theta, progress=None) -> dict:
+def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> dict:
     """name -> (a dict, or a list of them for a vector) the profiles of the measured unknowns
-    (`Problem.measured`) of the fit ``pb`` (the final pass's noise and loss) at its optimum, in
+    (`Problem.measured`) of the fit's problem ``pb`` (the final pass's noise and loss) at its optimum, in
     the values' units: ``lower``, ``upper`` (None: beyond the walk), ``lowest`` and its ``drop``
     below the fit's loss, and the ``points`` walked ([value, rise of the loss above the fit's]);
     losses in units of the reduced chi-square ``chi2`` (``0.5 |r|^2 / chi2``)."""
     theta = np.asarray(theta, float)
     cost0 = 0.5 * float(r @ r)
     out = {}
-    for u in problem.unknowns:
+    for u in pb.unknowns:
         if u.name in NUISANCE:
             continue
         entries = []
         for k in range(u.size):
-            index = problem.slices[u.name].start + k
+            index = pb.slices[u.name].start + k
 
             def value(x, index=index, k=k, u=u):
                 th = theta.copy()
                 th[index] = x
-                return float(np.atleast_1d(np.asarray(problem.to_values(th)[u.name], float))[k])
+                return float(np.atleast_1d(np.asarray(pb.to_values(th)[u.name], float))[k])
 
             label = u.name if u.size == 1 else f"{u.name}[{k}]"
             say = (
