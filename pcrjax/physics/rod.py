@@ -158,9 +158,25 @@ def coefficients(rod: Rod, effects: Effects, c0, gravity) -> RodCoefficients:
     )
 
 
+class _Frame:
+    """The rotation in a state vector (row-major at [3:12]), read by strided slices of the state:
+    a reshaped copy of it is a kernel of its own on XLA:CPU."""
+
+    def __init__(self, y):
+        self.y = y
+
+    def __getitem__(self, idx):
+        i, j = idx
+        if isinstance(i, slice):  # column j
+            return self.y[3 + j : 12 : 3]
+        if isinstance(j, slice):  # row i
+            return self.y[3 + 3 * i : 6 + 3 * i]
+        return self.y[3 + 3 * i + j]
+
+
 def unpack(y):
-    """Split a state vector into (p, R, n, m[, q, w])."""
-    p, R, n, m = y[0:3], y[3:12].reshape(3, 3), y[12:15], y[15:18]
+    """Split a state vector into (p, R, n, m[, q, w]); R is read as ``R[i, j]``, ``R[:, j]``, ``R[i, :]``."""
+    p, R, n, m = y[0:3], _Frame(y), y[12:15], y[15:18]
     if y.shape[0] == DYNAMIC_DIM:
         return p, R, n, m, y[18:21], y[21:24]
     return p, R, n, m
@@ -172,18 +188,27 @@ def strains(y, h, k: RodCoefficients, effects: Effects):
     rn = rmatvec(R, n)
     rm = rmatvec(R, m)
     ustar_term = 0.0 if k.ustar is None else k.kbt * k.ustar
+    # Products with reciprocals, not divisions: XLA:CPU computes a division once, in a kernel of its
+    # own, where a product fuses into every consumer of the strains.
     if k.bse is not None:
         with jax.named_scope("damping"):
             if effects.shear_extension:
-                v = (rn + k.kse * jnp.asarray(_E3) - k.bse * h[0:3]) / (k.kse + k.c0 * k.bse)
-            u = (rm + ustar_term - k.bbt * h[3:6]) / (k.kbt + k.c0 * k.bbt)
+                v = (rn + k.kse * jnp.asarray(_E3) - k.bse * h[0:3]) * (1.0 / (k.kse + k.c0 * k.bse))
+            u = (rm + ustar_term - k.bbt * h[3:6]) * (1.0 / (k.kbt + k.c0 * k.bbt))
     else:
         if effects.shear_extension:
-            v = rn / k.kse + jnp.asarray(_E3)
-        u = rm / k.kbt + (0.0 if k.ustar is None else k.ustar)
+            v = rn * (1.0 / k.kse) + jnp.asarray(_E3)
+        u = rm * (1.0 / k.kbt) + (0.0 if k.ustar is None else k.ustar)
     if not effects.shear_extension:
         v = jnp.asarray(_E3, dtype=y.dtype)
     return v, u
+
+
+def _rotate_cross_plus(R, a, b, c):
+    """$R (a \times b + c)$ with the cross product's components kept apart: on XLA:CPU a stacked
+    3-vector that a product with R reads componentwise is a kernel of its own."""
+    axb = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    return R[:, 0] * (axb[0] + c[0]) + R[:, 1] * (axb[1] + c[1]) + R[:, 2] * (axb[2] + c[2])
 
 
 def rhs(y, h, k: RodCoefficients, effects: Effects):
@@ -211,8 +236,8 @@ def rhs(y, h, k: RodCoefficients, effects: Effects):
     q_t = c0 * q + h[6:9]
     w_t = c0 * w + h[9:12]
     u_t = c0 * u + h[3:6]
-    n_s = k.rho_a * matvec(R, cross(w, q) + q_t) - f
-    m_s = matvec(R, cross(w, k.rho_j * w) + k.rho_j * w_t) - cross(p_s, n)
+    n_s = k.rho_a * _rotate_cross_plus(R, w, q, q_t) - f
+    m_s = _rotate_cross_plus(R, w, k.rho_j * w, k.rho_j * w_t) - cross(p_s, n)
     if effects.shear_extension:
         v_t = c0 * v + h[0:3]
         q_s = v_t - cross(u, q) + cross(w, v)
