@@ -3,11 +3,12 @@
 Forward dynamics solves for the end's pose under the scene's actuation; inverse dynamics
 (`inverse.py`) for the actuator values under a prescribed pose. Both share everything else.
 
-The Newton start is extrapolated linearly from the last two steps (the legs' segment rotations
-through their Cayley parameters, the platform pose through its increment, both relative to the
-last step), and the last step's Jacobian is reused. If Newton fails from the extrapolated start
-(e.g. under-damped high modes flipping sign each step), it is retried from the last step's
-solution with a fresh Jacobian.
+The Newton start is extrapolated linearly from the last two steps: the platform pose through its
+increment relative to the last step, the legs' base wrenches and segment-start positions, loads
+and velocities as numbers; their segment rotations are held at the last step's (extrapolating
+them as well did not reduce the Newton iterations consistently). The last step's Jacobian is
+reused. If Newton fails from the extrapolated start (e.g. under-damped high modes flipping sign
+each step), it is retried from the last step's solution with a fresh Jacobian.
 """
 
 from __future__ import annotations
@@ -163,8 +164,8 @@ def step(scene, state: StepState, t, path=None):
     z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
     memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co_next)
     p, R = scene.end.output_pose(body, tips)
-    # Unknowns of this step and the last, relative to this step's rotations, so that the next
-    # step's extrapolation compares like with like.
+    # Unknowns of this step and the last, the pose relative to this step's, so that the next
+    # step's extrapolation compares like with like (segment rotations: each relative to its own).
     x_rel, x_prev_rel = form.relative_unknowns(prob, p, R, nodes, a)
     new_state = StepState(
         nodes=nodes,
