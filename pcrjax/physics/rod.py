@@ -216,7 +216,7 @@ def strains(y, h, k: RodCoefficients, effects: Effects):
 
 
 def _rotate_cross_plus(R, a, b, c):
-    """$R (a \times b + c)$ with the cross product's components kept apart: on XLA:CPU a stacked
+    """$R (a \\times b + c)$ with the cross product's components kept apart: on XLA:CPU a stacked
     3-vector that a product with R reads componentwise is a kernel of its own."""
     axb = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
     return R[:, 0] * (axb[0] + c[0]) + R[:, 1] * (axb[1] + c[1]) + R[:, 2] * (axb[2] + c[2])
