@@ -175,18 +175,20 @@ def _frame_jvp(primals, tangents):
 
 
 class _Frame:
-    """The rotation of a state vector, read as ``R[:, j]`` (columns) and ``R[i, :]`` (rows)."""
+    """The rotation of a state vector, read as ``R[:, j]`` (columns), ``R[i, :]`` (rows) or ``R[i, j]``."""
 
     def __init__(self, y):
         self.cols, self.rows = _frame(y)
 
     def __getitem__(self, idx):
         i, j = idx
-        return self.cols[j] if isinstance(i, slice) else self.rows[i]
+        if isinstance(i, slice):
+            return self.cols[j]
+        return self.rows[i] if isinstance(j, slice) else self.rows[i][j]
 
 
 def unpack(y):
-    """Split a state vector into (p, R, n, m[, q, w]); R is read as ``R[:, j]`` and ``R[i, :]``."""
+    """Split a state vector into (p, R, n, m[, q, w]); R is read by index (`_Frame`)."""
     p, R, n, m = y[0:3], _Frame(y), y[12:15], y[15:18]
     if y.shape[0] == DYNAMIC_DIM:
         return p, R, n, m, y[18:21], y[21:24]
