@@ -181,11 +181,13 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
         return y, float(r @ r) if inside else np.inf
 
     cands = np.log(latin_hypercube(np.exp(x0), prior_length, SCREENED, seed))
-    # one static solve and its compliance per candidate, a few ms: no threads (they gain nothing
-    # on programs this short). Each solve runs the platform's load continuation: Newton started
-    # from a solved neighbour instead misses a few percent of the prior, in the corner where one
-    # rod is short (triskele_push_release_r2's truth lies there).
-    screened = np.array([np.asarray(costs(modes_of(jnp.asarray(x)))) for x in cands])
+    # One static solve and its compliance per candidate, one after another in one program
+    # (`lax.map`): a call per candidate would wait for the interpreter lock at every call while
+    # the fit's Jacobian is traced in a thread beside it. Not `vmap`: a batch runs every member
+    # until its slowest has finished. Each solve runs the platform's load continuation: Newton
+    # started from a solved neighbour instead misses a few percent of the prior, in the corner
+    # where one rod is short (triskele_push_release_r2's truth lies there).
+    screened = np.asarray(jax.jit(lambda xs: jax.lax.map(lambda x: costs(modes_of(x)), xs))(jnp.asarray(cands)))
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)
