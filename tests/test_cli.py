@@ -127,3 +127,13 @@ def test_bench_prints_the_table_kernels_and_gradient_cost(capsys, tmp_path):
     scan = {r["case"]: 5 // r["segments"] if 5 % r["segments"] == 0 else 5 for r in rows["rows"]}
     assert all(r["kernels_per_residual"] == r["kernels_per_node_step"] * scan[r["case"]] for r in rows["rows"])
     assert all(r["position_error_m"] > 0 and r["realtime_factor"] > 0 for r in rows["rows"])
+
+
+def test_bench_batch_prints_the_integrations_ceiling_and_matches_single_runs(capsys, tmp_path):
+    args = ["bench", "batch", "--batches", "1,3", "--nodes", "5", "--gradient-steps", "3", "--json", str(tmp_path / "b.json")]
+    assert main(args) == 0
+    assert "The legs' integration alone" in capsys.readouterr().out
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["batch"] for r in rows] == [1, 3]
+    # members equal their single runs (to round-off); gains are positive numbers, not asserted
+    assert all(r["max_rel_diff"] < 1e-10 and r["integration_gain"] > 0 for r in rows)

@@ -5,6 +5,12 @@ Till's cantilever case (`cases`) with Kelvin-Voigt damping, its members differin
 program; the batch runs them through one `jit(vmap(rollout))` program. Figures: compile time,
 member-steps per second, the batch's throughput over the loop's, and the largest difference of
 the end's positions from the loop's (relative to the largest displacement).
+
+First, the ceiling: the legs' integration alone (the bulk of every residual, which a step
+evaluates 7-10 times), timed single and batched. A batch gains by running each kernel over many
+members, but where the single run's kernels are already busy with arithmetic (as they are with
+16 kernels per RK4 node step) the gain is what the wider arithmetic allows, and no batched
+rollout gains more than its integration does.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from ..io.scene_file import scene_from_dict, with_solver
 from ..simulation import rollout
 from ..sweeps import batched, shard_members
 from .cases import _cantilever_dicts
+from .kernels import legs_integration, unknowns_shape
 
 
 def _scene(nodes: int, steps: int):
@@ -34,6 +41,26 @@ def _timed(fn, *args):
     t0 = time.perf_counter()
     out = jax.block_until_ready(fn(*args))
     return out, time.perf_counter() - t0
+
+
+def integration_gain(scene, sizes, calls: int = 400) -> list[tuple[int, float]]:
+    """(batch size, microseconds per member) of the legs' integration of ``scene`` with members
+    that differ in tau, for size 1 (unbatched) and each of ``sizes``; ``calls`` members per figure."""
+    x = jnp.full(unknowns_shape(scene), 1e-3)
+    tau = lambda s: s.legs.rod.damping.tau  # noqa: E731
+    one = lambda t: legs_integration(eqx.tree_at(tau, scene, t), x)  # noqa: E731
+    rows = []
+    for size in (1, *sizes):
+        program = jax.jit(jax.vmap(one) if size > 1 else one)
+        t = jnp.linspace(2e-4, 2e-3, size)[:, None] if size > 1 else tau(scene)
+        jax.block_until_ready(program(t))
+        reps = max(calls // size, 10)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            out = program(t)
+        jax.block_until_ready(out)
+        rows.append((size, (time.perf_counter() - t0) / (reps * size) * 1e6))
+    return rows
 
 
 def bench_batch(sizes, nodes: int = 20, steps: int = 200, loop_members: int = 16) -> list[dict]:
@@ -57,6 +84,13 @@ def bench_batch(sizes, nodes: int = 20, steps: int = 200, loop_members: int = 16
         f"Till's cantilever, RK4 N {nodes}, {steps} steps, tau 0.2-2 ms. Loop of single runs: compile {single_compile:.1f} s, "
         f"{loop_rate:.0f} member-steps/s ({1e3 / loop_rate:.3f} ms per member-step, {loop_members} runs)"
     )
+    gains = integration_gain(scene, [b for b in sizes if b > 1])
+    per_member = dict(gains)
+    print(
+        "The legs' integration alone (the bulk of a residual), microseconds per member: "
+        + ", ".join(f"batch {b} {us:.2f} ({gains[0][1] / us:.2f}x)" if b > 1 else f"single {us:.2f}" for b, us in gains)
+        + ": no batched rollout gains more here"
+    )
     print(f"{'batch':>6}{'compile s':>11}{'run s':>9}{'member-steps/s':>16}{'vs loop':>9}{'max diff':>11}{'Newton it/step':>16}")
     rows = []
     devices = len(jax.local_devices())
@@ -77,6 +111,7 @@ def bench_batch(sizes, nodes: int = 20, steps: int = 200, loop_members: int = 16
         row = dict(
             batch=size, devices=devices if size % devices == 0 else 1, compile_s=compile_s, run_s=run_s, member_steps_per_s=rate, vs_loop=rate / loop_rate, max_rel_diff=diff,
             newton_iterations=float(np.mean(its)), single_compile_s=single_compile, loop_member_steps_per_s=loop_rate,
+            integration_gain=per_member[1] / per_member[size],
         )  # fmt: skip
         print(
             f"{size:>6}{compile_s:>11.1f}{run_s:>9.2f}{rate:>16.0f}{rate / loop_rate:>9.2f}{diff:>11.1e}{row['newton_iterations']:>16.2f}"

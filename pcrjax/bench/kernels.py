@@ -44,9 +44,9 @@ def loop_body_kernels(hlo: str) -> int:
     return min(counts) if counts else 0
 
 
-def node_step_kernels(scene) -> int:
-    """Kernels per node step of the legs' integration in a dynamic step's residual of ``scene``
-    (the spatial scan's loop body; one scan serves every leg)."""
+def legs_integration(scene, xl):
+    """The legs' integration (the bulk of a dynamic step's residual) of ``scene`` at the scaled
+    unknowns ``xl`` (`unknowns_shape`), from rest histories and unit segment rotations."""
     from ..numerics import bdf_alpha
     from ..robots import assembly
 
@@ -56,12 +56,19 @@ def node_step_kernels(scene) -> int:
     n = scene.legs.count
     a = scene.actuator_values(jnp.zeros(()))
     R_ref = jnp.broadcast_to(jnp.eye(3), (n, lay.segments - 1, 3, 3))
+    prob = assembly.Problem(scene, True, a, jnp.zeros_like(a), scene.gravity, assembly.zero_histories(scene), R_ref, co.c0, None)
+    return prob.legs(xl, all_nodes=False)[1]
 
-    def f(xl):
-        prob = assembly.Problem(
-            scene, True, a, jnp.zeros_like(a), scene.gravity, assembly.zero_histories(scene), R_ref, co.c0, None
-        )
-        return prob.legs(xl, all_nodes=False)[1]
 
-    hlo = jax.jit(f).lower(jnp.zeros((n, lay.size))).compile().as_text()
+def unknowns_shape(scene) -> tuple[int, int]:
+    """(legs, unknowns per leg) of ``scene``'s dynamic step."""
+    from ..robots import assembly
+
+    return scene.legs.count, assembly.layout(scene, True).size
+
+
+def node_step_kernels(scene) -> int:
+    """Kernels per node step of the legs' integration in a dynamic step's residual of ``scene``
+    (the spatial scan's loop body; one scan serves every leg)."""
+    hlo = jax.jit(lambda xl: legs_integration(scene, xl)).lower(jnp.zeros(unknowns_shape(scene))).compile().as_text()
     return loop_body_kernels(hlo)
