@@ -86,16 +86,3 @@ def test_batched_solve_equals_single_solves_member_by_member(chunk, monkeypatch)
     for i in (0, 1, 2, 4):
         _, dq, dp, _ = _closed_form(*map(float, params[i]))
         np.testing.assert_allclose(grads[i], [dp, dq], rtol=1e-10)
-
-
-def test_a_continuation_that_loses_its_path_ends_there():
-    """x^2 + 1 - 2s = 0 from x = 1 in four stages: s = 1/4 and 1/2 have no real root, s = 1 has
-    x = 1. The first stage fails after max_iter directions and the solve ends there, reported
-    as not converged, not run through the stages after it from a point that is no root."""
-    h = lambda x, s: x**2 + 1.0 - 2.0 * s  # noqa: E731
-    x0 = jnp.ones(1)
-    stages = newton.continuation_first(x0, 4)
-    fn = lambda x: h(x, 1.0)  # noqa: E731
-    _, _, stats = newton.solve(fn, jax.jacfwd(fn), newton.Jacobian.empty(1), SETTINGS, stages, (h, jax.jacfwd(h)))
-    assert int(stats.result) != 0
-    assert int(stats.iterations) == SETTINGS.max_iter

@@ -95,10 +95,7 @@ class Stages(eqx.Module):
     """Newton solves run in sequence inside one loop: stage k solves ``homotopy(x, s[k]) = 0`` from
     ``starts[k]``, or, where ``chain[k]``, from the previous stage's result; with a fresh Jacobian
     where ``fresh[k]`` (else the previous stage's, Broyden-updated); stages marked ``fallback``
-    run only while the solve is not done (converged at s = 1). The last stage has s = 1. A stage
-    that ends unconverged ends the solve where the next stage would start from its result (a
-    continuation that lost its path: on a platform's static solves, going on through the
-    remaining stages found no root the early end misses, and failed at 2-4x the cost).
+    run only while the solve is not done (converged at s = 1). The last stage has s = 1.
 
     One loop, whatever the stages: the residual and the Jacobian are compiled once, not once per
     stage. Build them with `plain`, `with_restart`, `with_continuation` or `continuation_first`.
@@ -225,8 +222,7 @@ def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
     ended = ~((nrm_new > settings.tol) & (it_new < settings.max_iter) & jnp.isfinite(nrm_new))
     done = (nrm_new <= settings.tol) & (s == 1.0)
     k_next = jnp.minimum(st.k + 1, K - 1)
-    lost = ended & (nrm_new > settings.tol) & stages.chain[k_next] & (st.k < K - 1)  # see `Stages`
-    finished = ended & ((st.k == K - 1) | (done & stages.fallback[k_next]) | lost)
+    finished = ended & ((st.k == K - 1) | (done & stages.fallback[k_next]))
     advance = ended & ~finished
     nxt = _State(
         k=jnp.where(advance, k_next, st.k),
