@@ -37,6 +37,15 @@ def _scene(nodes: int, steps: int):
     return with_solver(scene_from_dict(d, "<bench batch>"), nodes=nodes, integrator="rk4")
 
 
+def _tau(scene):
+    return scene.legs.rod.damping.tau
+
+
+def _taus(n: int):
+    """The members' tau (n, 1): 0.2-2 ms."""
+    return jnp.linspace(2e-4, 2e-3, n)[:, None]
+
+
 def _timed(fn, *args):
     t0 = time.perf_counter()
     out = jax.block_until_ready(fn(*args))
@@ -47,12 +56,11 @@ def integration_gain(scene, sizes, calls: int = 400) -> list[tuple[int, float]]:
     """(batch size, microseconds per member) of the legs' integration of ``scene`` with members
     that differ in tau, for size 1 (unbatched) and each of ``sizes``; ``calls`` members per figure."""
     x = jnp.full(unknowns_shape(scene), 1e-3)
-    tau = lambda s: s.legs.rod.damping.tau  # noqa: E731
-    one = lambda t: legs_integration(eqx.tree_at(tau, scene, t), x)  # noqa: E731
+    one = lambda t: legs_integration(eqx.tree_at(_tau, scene, t), x)  # noqa: E731
     rows = []
     for size in (1, *sizes):
         program = jax.jit(jax.vmap(one) if size > 1 else one)
-        t = jnp.linspace(2e-4, 2e-3, size)[:, None] if size > 1 else tau(scene)
+        t = _taus(size) if size > 1 else _tau(scene)
         jax.block_until_ready(program(t))
         reps = max(calls // size, 10)
         t0 = time.perf_counter()
@@ -66,29 +74,28 @@ def integration_gain(scene, sizes, calls: int = 400) -> list[tuple[int, float]]:
 def bench_batch(sizes, nodes: int = 20, steps: int = 200, loop_members: int = 16) -> list[dict]:
     """Rows per batch size; the loop's throughput is measured over ``loop_members`` single runs."""
     scene = _scene(nodes, steps)
-    tau = lambda s: s.legs.rod.damping.tau  # noqa: E731
 
     def run(t):
-        tr = rollout(eqx.tree_at(tau, scene, t))
+        tr = rollout(eqx.tree_at(_tau, scene, t))
         return tr.position, tr.iterations
 
-    taus = lambda n: jnp.linspace(2e-4, 2e-3, n)[:, None]  # noqa: E731
     single = jax.jit(run)
     t0 = time.perf_counter()
-    single = single.lower(taus(1)[0]).compile()
+    single = single.lower(_taus(1)[0]).compile()
     single_compile = time.perf_counter() - t0
     loop_members = max(loop_members, 1)
-    loop = [_timed(single, t) for t in taus(loop_members)]
+    loop = [_timed(single, t) for t in _taus(loop_members)]
     loop_rate = loop_members * steps / sum(dt for _, dt in loop)
     print(
         f"Till's cantilever, RK4 N {nodes}, {steps} steps, tau 0.2-2 ms. Loop of single runs: compile {single_compile:.1f} s, "
         f"{loop_rate:.0f} member-steps/s ({1e3 / loop_rate:.3f} ms per member-step, {loop_members} runs)"
     )
-    gains = integration_gain(scene, [b for b in sizes if b > 1])
-    per_member = dict(gains)
+    per_member = dict(integration_gain(scene, [b for b in sizes if b > 1]))
     print(
         "The legs' integration alone (the bulk of a residual), microseconds per member: "
-        + ", ".join(f"batch {b} {us:.2f} ({gains[0][1] / us:.2f}x)" if b > 1 else f"single {us:.2f}" for b, us in gains)
+        + ", ".join(
+            f"batch {b} {us:.2f} ({per_member[1] / us:.2f}x)" if b > 1 else f"single {us:.2f}" for b, us in per_member.items()
+        )
         + ": no batched rollout gains more here"
     )
     print(f"{'batch':>6}{'compile s':>11}{'run s':>9}{'member-steps/s':>16}{'vs loop':>9}{'max diff':>11}{'Newton it/step':>16}")
@@ -97,14 +104,14 @@ def bench_batch(sizes, nodes: int = 20, steps: int = 200, loop_members: int = 16
     if devices > 1:
         print(f"each batch split across {devices} local devices (jax.sharding); the loop runs on one")
     for size in sizes:
-        ts = taus(size)
+        ts = _taus(size)
         if size % devices == 0:
             ts = shard_members(ts)
         t0 = time.perf_counter()
         program = jax.jit(batched(run) if size % devices == 0 else jax.vmap(run)).lower(ts).compile()
         compile_s = time.perf_counter() - t0
         (pos, its), run_s = _timed(program, ts)
-        ref = [single(t)[0] for t in taus(size)[: min(size, 8)]]
+        ref = [single(t)[0] for t in _taus(size)[: min(size, 8)]]
         scale = max(float(np.max(np.abs(np.asarray(r) - np.asarray(r)[0]))) for r in ref)
         diff = max(float(np.max(np.abs(np.asarray(pos[i]) - np.asarray(r)))) for i, r in enumerate(ref)) / scale
         rate = size * steps / run_s
