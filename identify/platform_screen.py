@@ -30,6 +30,8 @@ polished ones close to the best go on to the time-domain ranking with the full m
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -61,6 +63,9 @@ def lumped_modes(scene):
     platform on massless rods (see the module's text)."""
     body = scene.end.body
     mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
+    # A candidate whose static continuation loses its path is only marked: the solve ends there.
+    newton = dataclasses.replace(scene.solver.newton, stop_when_lost=True)
+    scene = dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, newton=newton))
 
     def unloaded(lengths, wrench):
         s = experiment.apply(scene, {"lengths": lengths})

@@ -86,3 +86,19 @@ def test_batched_solve_equals_single_solves_member_by_member(chunk, monkeypatch)
     for i in (0, 1, 2, 4):
         _, dq, dp, _ = _closed_form(*map(float, params[i]))
         np.testing.assert_allclose(grads[i], [dp, dq], rtol=1e-10)
+
+
+def test_a_continuation_that_loses_its_path_ends_there_when_asked():
+    """x^2 + 1 - 2s = 0 from x = 1 in four stages: s = 1/4 and 1/2 have no real root, s = 1 has
+    x = 1. With ``stop_when_lost`` the first stage fails after max_iter directions and the solve
+    ends there, reported as not converged; by default it goes on through the later stages."""
+    h = lambda x, s: x**2 + 1.0 - 2.0 * s  # noqa: E731
+    fn = lambda x: h(x, 1.0)  # noqa: E731
+    stages = newton.continuation_first(jnp.ones(1), 4)
+
+    def stats(settings):
+        return newton.solve(fn, jax.jacfwd(fn), newton.Jacobian.empty(1), settings, stages, (h, jax.jacfwd(h)))[2]
+
+    lost = stats(newton.NewtonSettings(tol=1e-13, max_iter=40, stop_when_lost=True))
+    assert int(lost.result) != 0 and int(lost.iterations) == 40
+    assert int(stats(SETTINGS).iterations) > 40
