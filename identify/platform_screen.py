@@ -37,7 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import identify
 import pcrjax
+from pcrjax import traces
 
 from . import experiment
 from .least_squares import FitError, levenberg_marquardt
@@ -192,7 +194,14 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     # until its slowest has finished. Each solve runs the platform's load continuation: Newton
     # started from a solved neighbour instead misses a few percent of the prior, in the corner
     # where one rod is short (triskele_push_release_r2's truth lies there).
-    screened = np.asarray(jax.jit(lambda xs: jax.lax.map(lambda x: costs(modes_of(x)), xs))(jnp.asarray(cands)))
+    # The program reads the scene, the recording (its free motion) and the tau grid.
+    all_costs = traces.jit(
+        lambda xs: jax.lax.map(lambda x: costs(modes_of(x)), xs),
+        "identify-screen",
+        (problem.scene, problem.rec, log_taus),
+        (identify,),
+    )
+    screened = np.asarray(all_costs(jnp.asarray(cands)))
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)

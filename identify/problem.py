@@ -28,7 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import identify
 import pcrjax
+from pcrjax import traces
 
 from . import camera, experiment, robust
 from .least_squares import levenberg_marquardt
@@ -127,11 +129,15 @@ class Problem:
         self.huber = robust.NONE  # Huber threshold in noise levels (NONE: least squares)
         self.keep = np.ones(rec.t.size, bool)  # frames that count (all; fewer to study missing frames)
         self.sigma.flags.writeable = self.keep.flags.writeable = False
-        # compiled once per problem: the noise and the window are arguments
-        self._residual = jax.jit(self._residual_fn)
-        self._residual_and_jacobian = jax.jit(self._residual_and_jacobian_fn)
-        self._linear_residual = jax.jit(self._linear_residual_fn)
-        self._linear_jacobian = jax.jit(jax.jacfwd(self._linear_residual_fn))
+        # compiled once per problem: the noise and the window are arguments. The programs read
+        # the recording, the unknowns and the scene (all set above from rec, fit and the scene),
+        # so those name their traces on disk (`pcrjax.traces`).
+        closure = (rec, self.fit, self.scene)
+        keep = lambda f, name: traces.jit(f, f"identify-{name}", closure, (identify,))  # noqa: E731
+        self._residual = keep(self._residual_fn, "residual")
+        self._residual_and_jacobian = keep(self._residual_and_jacobian_fn, "jacobian")
+        self._linear_residual = keep(self._linear_residual_fn, "linear-residual")
+        self._linear_jacobian = keep(jax.jacfwd(self._linear_residual_fn), "linear-jacobian")
         self.initial_values = self._initial_values({**nom, **materials}, initial or {})
 
     # -- parameter vector <-> values ----------------------------------------------------------

@@ -29,16 +29,30 @@ def cache_dir() -> Path | None:
     return Path(d)
 
 
+_traces: Path | None = None
+
+
+def trace_cache_dir() -> Path | None:
+    """Where `pcrjax.traces` keeps traced programs: beside the compilation cache, once
+    `enable_compilation_cache` has turned that on (None before)."""
+    return _traces
+
+
 def enable_compilation_cache() -> Path | None:
     """JAX's persistent compilation cache in ``PCRJAX_CACHE_DIR`` (default ``~/.cache/pcrjax/jax``;
-    ``PCRJAX_NO_CACHE=1``: off). Returns the folder, or None."""
+    ``PCRJAX_NO_CACHE=1``: off), and the traced programs of `pcrjax.traces` beside it (the same
+    folder's name + ``-traces``). Returns the compilation cache's folder, or None."""
+    global _traces
     d = cache_dir()
     if d is None:
         return None
+    traces = d.with_name(d.name + "-traces")
     try:
         d.mkdir(parents=True, exist_ok=True)
+        traces.mkdir(exist_ok=True)
     except OSError:
         return None
+    _traces = traces
     jax.config.update("jax_compilation_cache_dir", str(d))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
