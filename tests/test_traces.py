@@ -81,3 +81,14 @@ def test_a_scene_is_plain_data_and_its_values_name_the_program():
     a, b = (traces.fingerprint("s", s, ()) for s in (scene, longer))
     assert a is not None and b is not None and a != b
     assert traces.fingerprint("s", scene, ()) == a
+
+
+@pytest.mark.parametrize("name", ["cantilever_release", "triskele_push_release"])
+def test_a_fits_programs_are_named_by_plain_data(name):
+    """What a fit's programs close over (recording, unknowns, scene) can name them on disk; a
+    field that is not plain data would leave every fit tracing its programs again."""
+    from identify.problem import Problem
+    from identify.recording import load_recording
+
+    pb = Problem(load_recording(f"experiments_data/{name}.csv"), ("tau", "lengths"))
+    assert traces.fingerprint("p", (pb.rec, pb.fit, pb.scene), ()) is not None
