@@ -279,11 +279,15 @@ def _check_recovery(res, truth, names):
         L, Lt, Ls = np.atleast_1d(v["lengths"]), np.atleast_1d(truth["lengths"]), np.atleast_1d(se["lengths"])
         assert np.all(np.abs(L / Lt - 1) < 1e-3)
         assert np.all(np.abs(L - Lt) < 3 * Ls)
-    # the camera's frame: within 3 uncertainties, and those a thousandth of the robot's size
+    # The camera's frame: within 3 uncertainties, and within a thousandth of the robot's size,
+    # the accuracy asked of the lengths. Its uncertainty follows the lengths' (the frame is the
+    # start pose seen minus the model's rest pose, which the lengths move), and on a recording
+    # that pins the lengths to 25-80 um (triskele_push_release_r1) that is more than 1e-3 of
+    # the size: a precision the data do not hold is not asked.
     size = float(np.max(np.atleast_1d(truth["lengths"])))
     off, off_t = np.asarray(v["frame_offset"]), np.asarray(truth["frame_offset"])
     assert np.all(np.abs(off - off_t) < 3 * np.asarray(se["frame_offset"]))
-    assert np.all(np.asarray(se["frame_offset"]) < 1e-3 * size)
+    assert np.all(np.abs(off - off_t) < 1e-3 * size)
     assert abs(v["frame_rotation"] - truth["frame_rotation"]) < 3 * se["frame_rotation"]
     assert se["frame_rotation"] < 1e-3
 
