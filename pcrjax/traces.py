@@ -31,6 +31,8 @@ import jax
 import numpy as np
 from jax import export
 
+import pcrjax
+
 from . import config
 
 _VERSIONED = ("jax", "jaxlib", "equinox", "lineax", "optimistix", "numpy")
@@ -143,8 +145,6 @@ def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = ()):
     """
     jitted = jax.jit(fn)
     folder = config.trace_cache_dir()
-    import pcrjax
-
     key = None if folder is None else fingerprint(name, closure, (pcrjax, *packages))
     if key is None:
         return jitted
