@@ -123,7 +123,11 @@ def test_bench_prints_the_table_kernels_and_gradient_cost(capsys, tmp_path):
     assert [r["case"] for r in rows["rows"]] == ["thesis", "till"]
     # An RK4 node step is at least four right-hand sides. The gradient's cost is a timing: its
     # figure is printed, not compared (wall-clock ratios are noisy on a shared machine).
-    assert all(r["kernels_per_node_step"] >= 4 for r in rows["rows"]) and rows["gradient"]["ratio"] > 0
+    assert (
+        all(r["kernels_per_node_step"] >= 4 for r in rows["rows"])
+        and rows["gradient"]["ratio"] > 0
+        and rows["gradient"]["reverse_ratio"] > 0
+    )
     # one residual's scan: N node steps, or N/M where M equal segments run side by side
     scan = {r["case"]: 5 // r["segments"] if 5 % r["segments"] == 0 else 5 for r in rows["rows"]}
     assert all(r["kernels_per_residual"] == r["kernels_per_node_step"] * scan[r["case"]] for r in rows["rows"])

@@ -1,7 +1,8 @@
 """Implicit gradients through statics and rollouts against central finite differences.
 
-Each gradient is taken with respect to all parameters in one call (one compilation): reverse
-mode (`jax.grad`) for the tau-damped rollout, forward mode (`jax.jacfwd`) for the Bse/Bbt one.
+Each gradient is taken with respect to all parameters in one call (one compilation): `jax.grad`
+for the tau-damped rollout (forward columns by default, reverse mode asked for), `jax.jacfwd`
+for the Bse/Bbt one.
 """
 
 import equinox as eqx
@@ -78,16 +79,24 @@ def _dyn_scene(damping):
     )
 
 
-# 7: checkpointed chunks, the last one partial. Plain reverse mode through a rollout is also in the
-# default run (quickstart.ipynb against a central difference, the bench's gradient cost); here it is
-# slow to save a compile.
-@pytest.mark.parametrize("checkpoint", [7, pytest.param(None, marks=pytest.mark.slow)])
-def test_rollout_gradient_after_50_steps_length_E_tau(checkpoint):
+# Three scalars: by default `rollout` takes their derivatives in forward mode whatever the AD mode
+# (`numerics.few_inputs`); ``forward_columns=0`` asks for JAX's reverse mode, here through
+# checkpointed chunks of 7 steps (the last one partial). Plain reverse mode is slow to save a compile.
+@pytest.mark.parametrize(
+    "checkpoint, forward_columns",
+    [(None, None), (7, 0), pytest.param(None, 0, marks=pytest.mark.slow)],
+    ids=["forward-for-few", "reverse-checkpointed", "reverse"],
+)
+def test_rollout_gradient_after_50_steps_length_E_tau(checkpoint, forward_columns):
     scene = _dyn_scene({"tau": 2e-4})
     assert scene.solver.steps == 50
     params = {"length": scene.legs.rod.length[0], "E": scene.legs.rod.youngs_modulus[0], "tau": scene.legs.rod.damping.tau[0]}
+
+    def end_z(p):
+        return pcrjax.rollout(apply(scene, p), checkpoint=checkpoint, forward_columns=forward_columns).position[-1, 2]
+
     # One program for both: the differences evaluate the value half of value_and_grad.
-    vg = jax.jit(jax.value_and_grad(lambda p: pcrjax.rollout(apply(scene, p), checkpoint=checkpoint).position[-1, 2]))
+    vg = jax.jit(jax.value_and_grad(end_z))
     g = vg(params)[1]
     for k in params:
         _check(g[k], _central(lambda p: vg(p)[0], params, k), k)

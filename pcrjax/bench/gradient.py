@@ -1,9 +1,11 @@
-"""`pcrjax bench CASE --gradient`: the cost of a reverse-mode gradient through a rollout.
+"""`pcrjax bench CASE --gradient`: the cost of a gradient through a rollout.
 
 For the case's first scene (RK4, ``--gradient-nodes`` nodes, ``--gradient-steps`` steps): compile
-and run time of the jitted rollout (a scalar of it: the end's final z) and of its reverse-mode
-gradient with respect to every rod's length and Young's modulus (implicit differentiation through
-every Newton solve), and their ratio. Runs are timed after compilation, best of ``repeats``.
+and run time of the jitted rollout (a scalar of it: the end's final z) and of its gradient with
+respect to every rod's length and Young's modulus (implicit differentiation through every Newton
+solve), as `jax.grad` gets it (`rollout` takes few inputs' derivatives by forward columns) and
+in reverse mode (``forward_columns=0``), each against the rollout. Runs are timed after
+compilation, best of ``repeats``.
 """
 
 from __future__ import annotations
@@ -33,12 +35,13 @@ def gradient_cost(scene, nodes: int, steps: int, repeats: int = 3) -> dict:
     s = with_solver(scene, nodes=nodes, integrator="rk4", duration=steps * float(scene.solver.dt))
     params = (s.legs.rod.length, s.legs.rod.youngs_modulus)
 
-    def final_z(p):
+    def final_z(p, forward_columns=None):
         sc = eqx.tree_at(lambda q: (q.legs.rod.length, q.legs.rod.youngs_modulus), s, p)
-        return rollout(sc).position[-1, 2]
+        return rollout(sc, forward_columns=forward_columns).position[-1, 2]
 
     fwd_c, fwd_s = _timed(final_z, params, repeats=repeats)
     grad_c, grad_s = _timed(jax.grad(final_z), params, repeats=repeats)
+    rev_c, rev_s = _timed(jax.grad(lambda p: final_z(p, 0)), params, repeats=repeats)
     return dict(
         case=s.name,
         nodes=nodes,
@@ -48,14 +51,19 @@ def gradient_cost(scene, nodes: int, steps: int, repeats: int = 3) -> dict:
         gradient_compile_s=grad_c,
         gradient_s=grad_s,
         ratio=grad_s / fwd_s,
+        reverse_compile_s=rev_c,
+        reverse_s=rev_s,
+        reverse_ratio=rev_s / fwd_s,
     )
 
 
 def print_gradient_cost(row: dict):
     print(
-        f"\nReverse-mode gradient (lengths and E of every rod) of the end's final z, RK4 N = {row['nodes']}, {row['steps']} steps ({row['case']}):\n"
+        f"\nGradient (lengths and E of every rod) of the end's final z, RK4 N = {row['nodes']}, {row['steps']} steps ({row['case']}):\n"
         f"  forward rollout: compile {row['forward_compile_s']:.1f} s, run {row['forward_s'] * 1e3:.1f} ms\n"
-        f"  gradient:        compile {row['gradient_compile_s']:.1f} s, run {row['gradient_s'] * 1e3:.1f} ms"
-        f" = {row['ratio']:.2f} forward runs",
+        f"  jax.grad:        compile {row['gradient_compile_s']:.1f} s, run {row['gradient_s'] * 1e3:.1f} ms"
+        f" = {row['ratio']:.2f} forward runs (forward columns, `rollout`'s default for at most 16 scalars)\n"
+        f"  reverse mode:    compile {row['reverse_compile_s']:.1f} s, run {row['reverse_s'] * 1e3:.1f} ms"
+        f" = {row['reverse_ratio']:.2f} forward runs (forward_columns=0)",
         flush=True,
     )
