@@ -57,3 +57,13 @@ def test_batched_tangents_and_second_order():
     ab = jnp.stack([A, A + 1.0])
     gb = jax.vmap(jax.grad(lambda a: jnp.sum(g(a, B, N)["v"])))(ab)
     np.testing.assert_allclose(gb, jnp.cos(ab) * B[0], rtol=1e-14)
+
+
+def test_only_reverse_mode_takes_the_forward_columns():
+    """`jax.grad` evaluates the five columns (arrays with a leading axis of 5 in its program); a
+    plain `jax.jvp` asks for one direction and gets ``f``'s own tangent (no such arrays)."""
+    g = forward_for_few(f, 5)
+    rev = str(jax.make_jaxpr(jax.grad(lambda a, b: jnp.sum(g(a, b, N)["v"]), argnums=(0, 1)))(A, B))
+    fwd = str(jax.make_jaxpr(lambda a, b: jax.jvp(lambda x, y: g(x, y, N)["v"], (a, b), (DA, DB)))(A, B))
+    assert "f64[5,3]" in rev
+    assert "f64[5," not in fwd

@@ -7,13 +7,15 @@ the first direction and about 0.1 for each further one. So for a gradient with r
 numbers (a damping time, the rods' lengths, a dozen spline coefficients) forward mode is the
 cheaper one, and it stores nothing per step.
 
-`forward_for_few(fn, max_columns)` is ``fn`` with a `jax.custom_jvp` rule that, when at most
+`forward_for_few(fn, max_columns)` is ``fn`` with a `jax.custom_jvp` rule that, when it is
+linearised for reverse mode (`jax.grad`, `jax.vjp`, `jax.linearize`) and at most
 ``max_columns`` input scalars carry tangents, computes the Jacobian of ``fn``'s outputs with
 respect to those scalars by forward mode (one `jax.jvp` batched over unit directions) and
-returns its product with the tangents. That product is linear in the tangents, so `jax.grad`,
-`jax.vjp` and `jax.linearize` transpose it into a product with the same Jacobian: reverse mode
-gets the forward columns' cost. With more perturbed scalars the rule is ``fn``'s own `jax.jvp`,
-and reverse mode is JAX's. Values and derivatives are those of ``fn`` either way (to rounding).
+returns its product with the tangents. That product is linear in the tangents, so reverse mode
+transposes it into a product with the same Jacobian and gets the forward columns' cost.
+Otherwise (more perturbed scalars, or a plain `jax.jvp` that asks for its own directions) the
+rule is ``fn``'s own `jax.jvp`. Values and derivatives are those of ``fn`` either way (to
+rounding).
 """
 
 from __future__ import annotations
@@ -22,10 +24,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
+from jax.interpreters import partial_eval as pe
 
 
 def _inexact(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+
+
+def _linearizing(tangents) -> bool:
+    """Whether the rule is being linearised for a transpose (`jax.grad`, `jax.vjp`,
+    `jax.linearize`): its tangents are then partial-evaluation tracers of unknown values. A
+    plain `jax.jvp` (`jax.jacfwd`, a batch of directions) passes values or other tracers, and
+    gets ``fn``'s own tangents: as many directions as it asks for, not one per input scalar."""
+    return any(isinstance(t, pe.JaxprTracer) for t in tangents)
 
 
 def forward_for_few(fn, max_columns: int):
@@ -65,9 +76,10 @@ def _with_forward_rule(fn, max_columns: int):
             return fn(*args)
 
         live_primals = tuple(primals[i] for i in live)
+        live_tangents = tuple(tangents[i] for i in live)
         columns = sum(int(np.size(p)) for p in live_primals)
-        if columns == 0 or columns > max_columns:
-            return jax.jvp(with_live, live_primals, tuple(tangents[i] for i in live))
+        if columns == 0 or columns > max_columns or not _linearizing(live_tangents):
+            return jax.jvp(with_live, live_primals, live_tangents)
 
         shapes = [jnp.shape(p) for p in live_primals]
         ends = np.cumsum([0] + [int(np.prod(s)) for s in shapes])
@@ -86,7 +98,7 @@ def _with_forward_rule(fn, max_columns: int):
             return jax.jvp(of_live, live_primals, dirs, has_aux=True)
 
         smooth, cols, rest = jax.vmap(column, out_axes=(None, 0, None))(jnp.eye(columns))
-        dtheta = jnp.concatenate([jnp.ravel(tangents[i]) for i in live])
+        dtheta = jnp.concatenate([jnp.ravel(t) for t in live_tangents])
         it_s, it_c, it_r = iter(smooth), iter(cols), iter(rest)
         leaves, dleaves = [], []
         for is_smooth in meta["smooth"]:
