@@ -246,7 +246,8 @@ def rollout(scene, active_steps=None, path=None, checkpoint: int | None = None, 
     **Derivatives.** With respect to at most ``forward_columns`` (default `FORWARD_COLUMNS`)
     perturbed scalars of ``scene`` and ``path``, every AD mode (`jax.grad` too) gets them by
     forward mode (`numerics.few_inputs`): one exact Jacobian per step serves all directions,
-    and nothing is stored per step. `jax.grad` of a scalar with respect to a rod's length and
+    and reverse mode keeps those columns of the outputs it uses (under `jit`), not every step's
+    intermediates. `jax.grad` of a scalar with respect to a rod's length and
     Young's modulus then costs about 2.8 forward runs on Till's cantilever, against about 6 in
     reverse mode. With more perturbed scalars (an actuator table, say), reverse mode is JAX's;
     ``forward_columns=0`` asks for it always.

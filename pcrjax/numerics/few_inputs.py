@@ -5,7 +5,8 @@ cantilever (RK4 N 20, 200 steps) `jax.grad` costs about 6 forward runs. Forward 
 exact Jacobian per step for all its directions, then each direction a node scan: 2.5 runs for
 the first direction and about 0.1 for each further one. So for a gradient with respect to a few
 numbers (a damping time, the rods' lengths, a dozen spline coefficients) forward mode is the
-cheaper one, and it stores nothing per step.
+cheaper one, and what reverse mode keeps is the Jacobian's columns of the outputs it uses (under
+`jit` the others are never computed), not every step's intermediates.
 
 `forward_for_few(fn, max_columns)` is ``fn`` with a `jax.custom_jvp` rule that, when it is
 linearised for reverse mode (`jax.grad`, `jax.vjp`, `jax.linearize`) and at most
