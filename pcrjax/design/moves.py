@@ -18,8 +18,9 @@ residual.
 Two optimisers: Levenberg-Marquardt on the residual vector with its Jacobian by forward mode
 (`jax.jacfwd`, one JVP per coefficient, the per-step factorisation shared), or optax's Adam on
 the sum of squares by its gradient: forward columns for up to `simulation.FORWARD_COLUMNS`
-coefficients (`numerics.few_inputs`: cheaper than reverse mode there), else reverse mode. The forward solve's actuators are a table at the step
-times; a finer independent run evaluates the same curve at its own step times.
+coefficients (`numerics.few_inputs`: cheaper than reverse mode there), else reverse mode. The
+forward solve's actuators are a table at the step times; a finer independent run evaluates the
+same curve at its own step times.
 """
 
 from __future__ import annotations
@@ -222,9 +223,9 @@ def design_move(
     """Optimise the move's correction coefficients from zero (the plain move). Returns a dict:
     ``coefficients`` (count, n), ``objective`` (sum of squares, m^2, per iteration, the plain
     move's first), ``compile_s``, ``optimise_s``, ``method``: "lm" (Levenberg-Marquardt,
-    forward-mode Jacobian) or "adam" (optax, the gradient of the sum of squares). Trial steps whose rollout
-    does not converge are rejected; a plain move that does not converge raises. ``programs``
-    (`MovePrograms`) reuses compiled programs across calls."""
+    forward-mode Jacobian) or "adam" (optax, the gradient of the sum of squares). Trial steps
+    whose rollout does not converge are rejected; a plain move that does not converge raises.
+    ``programs`` (`MovePrograms`) reuses compiled programs across calls."""
     if method not in ("lm", "adam"):
         raise SceneError(f"unknown design method {method!r}: 'lm' or 'adam'")
     n = move.a0.shape[0]
