@@ -228,9 +228,11 @@ def _assemble(scene, static, state0, outs, steps):
 
 
 # Derivatives with respect to at most this many scalars are taken in forward mode, in every AD
-# mode (`few_inputs`). Measured break-even against reverse mode (`jax.grad` of a rollout, N 10-20):
-# about 14 scalars on the Stewart-Gough platform, 23 on the Triskele, 32 on Till's cantilever.
-FORWARD_COLUMNS = 16
+# mode (`few_inputs`). Each forward column costs a node scan per step, so the break-even against
+# reverse mode falls as Newton needs fewer iterations per step. Measured (`jax.grad` of a
+# rollout): about 32 scalars on Till's cantilever (N 20, dt 5 ms), 23 on the Triskele at dt 1 ms,
+# 14 on the Stewart-Gough platform, and 7 on the Triskele at dt 50 us (1-2 iterations a step).
+FORWARD_COLUMNS = 6
 
 
 def rollout(scene, active_steps=None, path=None, checkpoint: int | None = None, forward_columns: int | None = None) -> Trajectory:

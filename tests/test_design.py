@@ -66,10 +66,10 @@ def test_vibration_gradient_matches_central_differences():
     assert np.abs(g - fd).max() < 1e-6 * np.abs(fd).max()
 
 
-def test_adam_gradient_by_forward_columns_is_the_central_difference_and_the_cli_runs_adam(tmp_path):
-    """Adam's gradient (`MovePrograms.gradient`: forward columns for its six coefficients, the
-    path `--method adam` takes) against central differences of the same program's residuals,
-    then ``pcrjax design --method adam`` end to end on a small move."""
+def test_adam_gradient_is_the_central_difference_and_the_cli_runs_adam(tmp_path):
+    """Adam's gradient (`MovePrograms.gradient`, the path `--method adam` takes) against central
+    differences of the same program's residuals, then ``pcrjax design --method adam`` end to end
+    on a small move."""
     sc = _triskele(nodes=5, dt=5e-4, tol=1e-13)
     move, scene = design.plan_move(sc, [3e-6, 1e-6, 0.0], [0.0, 0.0, 1e-4], 5e-3, 5e-3, count=2)
     progs = design.MovePrograms(scene, 0.05)

@@ -2,7 +2,7 @@
 
 * The Triskele point-to-point move of the design tests (5 um in 10 ms, 20 ms settling window,
   undamped, 4 corrections per actuator): Levenberg-Marquardt (forward-mode Jacobian) against
-  Adam (the gradient, by forward columns for its 12 coefficients): iterations, wall and compile
+  Adam (the gradient: reverse mode for its 12 coefficients): iterations, wall and compile
   time to reach 1e-4 of the plain move's sum of squares, and the residual vibration on the finer
   independent grid.
 * The gradient of a scalar of the rollout against one forward rollout (cost ratio), as `jax.grad`

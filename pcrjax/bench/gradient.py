@@ -16,7 +16,7 @@ import equinox as eqx
 import jax
 
 from ..io.scene_file import with_solver
-from ..simulation import rollout
+from ..simulation import FORWARD_COLUMNS, rollout
 
 
 def _timed(fn, *args, repeats: int = 3):
@@ -54,6 +54,7 @@ def gradient_cost(scene, nodes: int, steps: int, repeats: int = 3) -> dict:
         reverse_compile_s=rev_c,
         reverse_s=rev_s,
         reverse_ratio=rev_s / fwd_s,
+        scalars=int(sum(a.size for a in params)),
     )
 
 
@@ -62,7 +63,8 @@ def print_gradient_cost(row: dict):
         f"\nGradient (lengths and E of every rod) of the end's final z, RK4 N = {row['nodes']}, {row['steps']} steps ({row['case']}):\n"
         f"  forward rollout: compile {row['forward_compile_s']:.1f} s, run {row['forward_s'] * 1e3:.1f} ms\n"
         f"  jax.grad:        compile {row['gradient_compile_s']:.1f} s, run {row['gradient_s'] * 1e3:.1f} ms"
-        f" = {row['ratio']:.2f} forward runs (forward columns, `rollout`'s default for at most 16 scalars)\n"
+        f" = {row['ratio']:.2f} forward runs ({row['scalars']} scalars: "
+        f"{'forward columns' if row['scalars'] <= FORWARD_COLUMNS else 'reverse mode'}, `rollout`'s choice)\n"
         f"  reverse mode:    compile {row['reverse_compile_s']:.1f} s, run {row['reverse_s'] * 1e3:.1f} ms"
         f" = {row['reverse_ratio']:.2f} forward runs (forward_columns=0)",
         flush=True,

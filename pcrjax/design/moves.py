@@ -17,10 +17,8 @@ residual.
 
 Two optimisers: Levenberg-Marquardt on the residual vector with its Jacobian by forward mode
 (`jax.jacfwd`, one JVP per coefficient, the per-step factorisation shared), or optax's Adam on
-the sum of squares by its gradient: forward columns for up to `simulation.FORWARD_COLUMNS`
-coefficients (`numerics.few_inputs`: cheaper than reverse mode there), else reverse mode. The
-forward solve's actuators are a table at the step times; a finer independent run evaluates the
-same curve at its own step times.
+the sum of squares by reverse mode. The forward solve's actuators are a table at the step
+times; a finer independent run evaluates the same curve at its own step times.
 """
 
 from __future__ import annotations
@@ -36,11 +34,10 @@ import numpy as np
 from ..errors import ConvergenceError, SceneError
 from ..io.scene_file import with_solver
 from ..numerics import results
-from ..numerics.few_inputs import forward_for_few
 from ..physics.rotations import exp_map, matmul, rotation_vector, transpose_matmul
 from ..replay import with_actuator_table
 from ..robots.inverse import check_square, solve_static_inverse
-from ..simulation import FORWARD_COLUMNS, rollout, simulate, solve_static
+from ..simulation import rollout, simulate, solve_static
 from .least_squares import levenberg_marquardt, limit_rows
 from .splines import correction_basis, smooth_step
 
@@ -208,8 +205,7 @@ class MovePrograms:
         residual = move_residual(scene, lever)
         self.residual = jax.jit(residual)
         self.jacobian = jax.jit(jax.jacfwd(lambda c, tab: residual(c, tab)[0]))
-        rows = forward_for_few(lambda c, tab: residual(c, tab)[0], FORWARD_COLUMNS)
-        self.gradient = jax.jit(jax.value_and_grad(lambda c, tab: jnp.sum(rows(c, tab) ** 2)))
+        self.gradient = jax.jit(jax.value_and_grad(lambda c, tab: jnp.sum(residual(c, tab)[0] ** 2)))
 
 
 def default_lever(scene) -> float:
@@ -223,9 +219,9 @@ def design_move(
     """Optimise the move's correction coefficients from zero (the plain move). Returns a dict:
     ``coefficients`` (count, n), ``objective`` (sum of squares, m^2, per iteration, the plain
     move's first), ``compile_s``, ``optimise_s``, ``method``: "lm" (Levenberg-Marquardt,
-    forward-mode Jacobian) or "adam" (optax, the gradient of the sum of squares). Trial steps
-    whose rollout does not converge are rejected; a plain move that does not converge raises.
-    ``programs`` (`MovePrograms`) reuses compiled programs across calls."""
+    forward-mode Jacobian) or "adam" (optax, reverse-mode gradient). Trial steps whose rollout
+    does not converge are rejected; a plain move that does not converge raises. ``programs``
+    (`MovePrograms`) reuses compiled programs across calls."""
     if method not in ("lm", "adam"):
         raise SceneError(f"unknown design method {method!r}: 'lm' or 'adam'")
     n = move.a0.shape[0]

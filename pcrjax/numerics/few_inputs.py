@@ -3,10 +3,11 @@ r"""Derivatives with respect to few inputs by forward mode, whichever mode JAX i
 Reverse mode through a rollout transposes every step's Newton solve and node scans: on Till's
 cantilever (RK4 N 20, 200 steps) `jax.grad` costs about 6 forward runs. Forward mode pays one
 exact Jacobian per step for all its directions, then each direction a node scan: 2.5 runs for
-the first direction and about 0.1 for each further one. So for a gradient with respect to a few
-numbers (a damping time, the rods' lengths, a dozen spline coefficients) forward mode is the
-cheaper one, and what reverse mode keeps is the Jacobian's columns of the outputs it uses (under
-`jit` the others are never computed), not every step's intermediates.
+the first direction and about 0.1 for each further one there (more where Newton needs fewer
+iterations a step: the rollout's `FORWARD_COLUMNS`). So for a gradient with respect to a few
+numbers (a damping time, the rods' lengths) forward mode is the cheaper one, and what reverse
+mode keeps is the Jacobian's columns of the outputs it uses (under `jit` the others are never
+computed), not every step's intermediates.
 
 `forward_for_few(fn, max_columns)` is ``fn`` with a `jax.custom_jvp` rule that, when it is
 linearised for reverse mode (`jax.grad`, `jax.vjp`, `jax.linearize`) and at most
