@@ -41,6 +41,14 @@ def _linearizing(tangents) -> bool:
     return any(isinstance(t, pe.JaxprTracer) for t in tangents)
 
 
+def _put(seq, where, values) -> list:
+    """A copy of ``seq`` with ``values`` at the indices ``where``."""
+    out = list(seq)
+    for i, v in zip(where, values, strict=True):
+        out[i] = v
+    return out
+
+
 def forward_for_few(fn, max_columns: int):
     """``fn(*args)`` (pytrees in, a pytree out) whose derivatives with respect to at most
     ``max_columns`` perturbed input scalars are computed by forward mode in every AD mode.
@@ -51,10 +59,7 @@ def forward_for_few(fn, max_columns: int):
         where = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array | np.ndarray)]
 
         def of_arrays(*arrays):
-            full = list(leaves)
-            for i, a in zip(where, arrays, strict=True):
-                full[i] = a
-            return fn(*jax.tree.unflatten(treedef, full))
+            return fn(*jax.tree.unflatten(treedef, _put(leaves, where, arrays)))
 
         return _with_forward_rule(of_arrays, max_columns)(*(leaves[i] for i in where))
 
@@ -72,10 +77,7 @@ def _with_forward_rule(fn, max_columns: int):
         live = [i for i, t in enumerate(tangents) if not isinstance(t, SymbolicZero) and _inexact(primals[i])]
 
         def with_live(*values):  # fn of the perturbed inputs, the others held
-            args = list(primals)
-            for i, v in zip(live, values, strict=True):
-                args[i] = v
-            return fn(*args)
+            return fn(*_put(primals, live, values))
 
         live_primals = tuple(primals[i] for i in live)
         live_tangents = tuple(tangents[i] for i in live)
