@@ -160,15 +160,17 @@ def cmd_pareto(args) -> int:
     if not args.quiet:
         print(f"{'setting':<34}{'error':>11}{'wall s/sim s':>14}{'compile s':>11}{'front':>7}")
         for r in rows:
-            print(
-                f"{r['label']:<34}{r['error']:>11.2e}{r['wall_per_sim_s']:>14.3g}{r['compile_s']:>11.1f}{'*' if r['pareto'] else '':>7}"
-            )
+            err = f"{r['error']:.2e}" if r["resolved"] else f"<{ref.floor:.1e}"
+            print(f"{r['label']:<34}{err:>11}{r['wall_per_sim_s']:>14.3g}{r['compile_s']:>11.1f}{'*' if r['pareto'] else '':>7}")
         print(
             f"reference: RK4 N {ref.nodes}, dt {ref.dt:g}, observed order {ref.observed_order:.2f}, extrapolation changed it by "
-            f"{ref.extrapolation_change:.1e}, N/2 differs by {ref.spatial_change:.1e} (relative)"
+            f"{ref.extrapolation_change:.1e}, N/2 differs by {ref.spatial_change:.1e} (relative); errors below "
+            f"{ref.floor:.1e} are not resolved"
         )
     if args.target_error is not None:
-        if best is None:
+        if best is None and args.target_error < ref.floor:
+            print(f"error {args.target_error:g} is below what the reference resolves ({ref.floor:.1e}): refine the reference")
+        elif best is None:
             print(f"no setting reaches error {args.target_error:g}; the finest reaches {min(r['error'] for r in rows):.2e}")
         else:
             print(

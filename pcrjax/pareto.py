@@ -16,6 +16,13 @@ O(h) error in the rates stays in the motion after a release; the runs then carry
 and an O(h^2) term (observed orders 0.4-1.3 on the released cantilever at h = 2.5 ms), and the
 reference (8 x(h/4) - 6 x(h/2) + x(h))/3 removes both (error O(h^3)). The observed order
 log2(|x(h) - x(h/2)| / |x(h/2) - x(h/4)|) and the change the extrapolation made are reported.
+
+**The reference's floor**: errors below it are not resolved. Where the dt chain converges
+(observed order at least 1) it is RK4's spatial error at the reference's N, the change from N/2
+over 15 (N^-4). Where it does not (undamped modes the finer steps resolve and BDF-alpha's
+damping no longer removes, or round-off growing as dt falls) the last halving's change
+|x(h/2) - x(h/4)| counts too. The front and `cheapest` count an error below the floor as the
+floor, so that settings the reference cannot tell apart are ranked by cost alone.
 """
 
 from __future__ import annotations
@@ -102,6 +109,14 @@ class Reference:
     extrapolation_change: float  # max |ref - x(h/4)| / displacement
     spatial_change: float  # max |x(N) - x(N/2)| / displacement at h
     seconds: float
+    last_change: float = 0.0  # max |x(h/2) - x(h/4)| / displacement
+
+    @property
+    def floor(self) -> float:
+        """The smallest error this reference resolves (module doc)."""
+        space = self.spatial_change / 15.0
+        converging = math.isfinite(self.observed_order) and self.observed_order >= 1.0
+        return space if converging else max(space, self.last_change)
 
 
 def reference(scene, dts, reference_nodes: int, progress=print) -> Reference:
@@ -128,6 +143,7 @@ def reference(scene, dts, reference_nodes: int, progress=print) -> Reference:
         extrapolation_change=float(np.max(np.linalg.norm(ref - x4, axis=1)) / amp),
         spatial_change=float(np.max(np.linalg.norm(np.asarray(coarse.position) - x1, axis=1)) / amp),
         seconds=time.perf_counter() - t_start,
+        last_change=float(d24 / amp),
     )
 
 
@@ -195,9 +211,9 @@ def _row(st: Setting, **figures) -> dict:
     return dict(family=st.family, label=st.label, thesis=st.thesis, **figures)
 
 
-def pareto_front(rows) -> np.ndarray:
-    """Mask of the rows no other row beats in both error and cost."""
-    e = np.array([r["error"] for r in rows])
+def pareto_front(rows, floor: float = 0.0) -> np.ndarray:
+    """Mask of the rows no other row beats in both error and cost (errors below ``floor`` count as ``floor``)."""
+    e = np.maximum(np.array([r["error"] for r in rows]), floor)
     c = np.array([r["wall_per_sim_s"] for r in rows])
     out = np.ones(len(rows), bool)
     for i in range(len(rows)):
@@ -206,9 +222,10 @@ def pareto_front(rows) -> np.ndarray:
     return out
 
 
-def cheapest(rows, target: float) -> dict | None:
-    """The row of least wall time per simulated second whose error is at most ``target``."""
-    ok = [r for r in rows if r["error"] <= target]
+def cheapest(rows, target: float, floor: float = 0.0) -> dict | None:
+    """The row of least wall time per simulated second whose error is at most ``target``; none
+    where ``target`` is below the reference's ``floor`` (no error that small is resolved)."""
+    ok = [r for r in rows if r["error"] <= target and floor <= target]
     return min(ok, key=lambda r: r["wall_per_sim_s"]) if ok else None
 
 
@@ -238,8 +255,9 @@ def run_pareto(
             progress(f"  did not converge: {e}")
             rows.append(_row(st, nodes=st.solver.get("nodes", math.nan), dt_s=math.nan, alpha=math.nan, error=math.inf,
                              wall_per_sim_s=math.inf, compile_s=math.nan, newton_iterations=math.nan))  # fmt: skip
-    for r, f in zip(rows, pareto_front(rows), strict=True):
+    for r, f in zip(rows, pareto_front(rows, ref.floor), strict=True):
         r["pareto"] = bool(f)
+        r["resolved"] = bool(r["error"] > ref.floor)
     return rows, ref
 
 
@@ -253,6 +271,7 @@ COLUMNS = (
     "wall_per_sim_s",
     "compile_s",
     "newton_iterations",
+    "resolved",
     "pareto",
     "thesis",
 )
@@ -268,7 +287,7 @@ def write(out, scene_name: str, rows, ref: Reference, target: float | None = Non
         ",".join(f'"{r[c]}"' if isinstance(r[c], str) else f"{float(r[c]):.10g}" for c in COLUMNS) for r in rows
     ]
     outputs._atomic_write(out / "pareto.csv", "\n".join(lines) + "\n")
-    best = cheapest(rows, target) if target is not None else None
+    best = cheapest(rows, target, ref.floor) if target is not None else None
     outputs.write_json(
         out / "summary.json",
         {
@@ -280,6 +299,8 @@ def write(out, scene_name: str, rows, ref: Reference, target: float | None = Non
                 "observed_order": ref.observed_order,
                 "extrapolation_change": ref.extrapolation_change,
                 "spatial_change_n_half": ref.spatial_change,
+                "last_halving_change": ref.last_change,
+                "floor": ref.floor,
                 "seconds": ref.seconds,
             },
             "front": [r["label"] for r in rows if r["pareto"]],

@@ -11,7 +11,7 @@ from helpers import rod_scene
 from oracles import elastica_tip, euler_bernoulli_tip, first_frequency_hz
 
 from pcrjax import SceneError, load_scene
-from pcrjax.lumped import lumped_rollout, lumped_static, natural_frequencies
+from pcrjax.lumped import _jacobian_at_rest, lumped_rollout, lumped_static, natural_frequencies, step_budget
 
 L, E, R, RHO = 0.4, 207e9, 1e-3, 8000.0
 
@@ -47,14 +47,15 @@ def test_large_deflection_matches_the_elastica():
 
 def test_diffrax_rollout_conserves_energy_and_damping_dissipates():
     scene = rod_scene(force=(0.0, 0.0, -0.2), dt=2e-3, duration=0.03)
-    roll = jax.jit(lumped_rollout, static_argnums=1, static_argnames=("method", "rtol"))
-    tr = roll(scene, 4, method="tsit5", rtol=1e-9)
+    roll = jax.jit(lumped_rollout, static_argnums=1, static_argnames=("method", "rtol", "max_steps"))
+    budget = step_budget(scene, 4, rtol=1e-9)
+    tr = roll(scene, 4, method="tsit5", rtol=1e-9, max_steps=budget)
     assert bool(tr.converged)
     e = np.asarray(tr.energy)
     assert np.max(np.abs(e - e[0])) < 1e-6 * e[0], e
     assert np.max(np.abs(np.asarray(tr.position)[:, 2] - float(tr.position[0, 2]))) > 0.5 * abs(float(tr.position[0, 2]))
     damped = rod_scene(force=(0.0, 0.0, -0.2), dt=2e-3, duration=0.03, effects={"damping": True}, rod_extra={"tau": 2e-4})
-    ed = np.asarray(roll(damped, 4, method="tsit5", rtol=1e-9).energy)
+    ed = np.asarray(roll(damped, 4, method="tsit5", rtol=1e-9, max_steps=budget).energy)
     assert np.all(np.diff(ed) <= 1e-12 * ed[0]) and ed[-1] < 0.99 * ed[0], ed
 
 
@@ -70,3 +71,22 @@ def test_bad_input(make, kw, match):
     kw = {"segments": 4, **kw}
     with pytest.raises(SceneError, match=match):
         lumped_rollout(make(), **kw)
+
+
+def test_ode_linearisation_oscillates_at_the_modal_frequencies():
+    """The ODE's Jacobian at the unloaded rest state (what `step_budget` reads) has eigenvalues
+    +-i 2 pi f for each of the 6N natural frequencies, which come from the energy's Hessian: the
+    vector field and the energy agree. Its spectral radius sets the explicit step."""
+    scene = rod_scene(force=(0.0, 0.0, 0.0))
+    jac = np.asarray(jax.jit(_jacobian_at_rest, static_argnums=1)(scene, 8))
+    ev = np.linalg.eigvals(jac)
+    f = np.sort(np.asarray(natural_frequencies(scene, 8))) * 2 * np.pi
+    up = np.sort(ev.imag[ev.imag > 1e-3 * f[0]])
+    assert up.size == f.size == 48
+    np.testing.assert_allclose(up, f, rtol=1e-8)
+    assert np.max(np.abs(ev.real)) < 1e-8 * f[-1]
+
+
+def test_traced_scene_needs_a_step_budget():
+    with pytest.raises(SceneError, match="pass max_steps"):
+        jax.jit(lumped_rollout, static_argnums=1)(rod_scene(duration=0.01), 4)

@@ -2,6 +2,7 @@
 setting on hand-made rows, and the command on a small scene."""
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -11,7 +12,7 @@ from oracles import euler_bernoulli_tip, first_frequency_hz, fit_sinusoids
 from test_cli import GOOD, _write
 
 from pcrjax.cli import main
-from pcrjax.pareto import cheapest, pareto_front, reference
+from pcrjax.pareto import Reference, cheapest, pareto_front, reference
 
 SCENE = GOOD + "release_time = 0.0\n"  # the small rod of test_cli, released at t = 0
 
@@ -39,6 +40,19 @@ def test_front_and_cheapest_on_hand_made_rows():
     assert list(pareto_front(rows)) == [True, True, False, True, False]
     assert cheapest(rows, 5e-3)["label"] == "b"
     assert cheapest(rows, 1e-5) is None
+    # A reference that resolves errors down to 2e-3 only cannot tell b, c and d apart: the
+    # cheapest of them (b) is the front's end, and a target below the floor has no answer.
+    assert list(pareto_front(rows, floor=2e-3)) == [True, True, False, False, False]
+    assert cheapest(rows, 2.5e-3, floor=2e-3)["label"] == "b"
+    assert cheapest(rows, 1e-3, floor=2e-3) is None
+
+
+def test_reference_floor_counts_the_last_halving_only_where_the_dt_chain_does_not_converge():
+    ref = Reference(t=np.zeros(1), position=np.zeros((1, 3)), dt=1e-3, nodes=20, observed_order=2.0,
+                    extrapolation_change=1e-4, spatial_change=1.5e-6, seconds=0.0, last_change=3e-4)  # fmt: skip
+    assert ref.floor == pytest.approx(1e-7)  # RK4's N^-4: the N/2 change over 15
+    assert dataclasses.replace(ref, observed_order=-0.4).floor == 3e-4
+    assert dataclasses.replace(ref, observed_order=float("nan")).floor == 3e-4
 
 
 def test_pareto_command_on_a_small_scene(tmp_path, capsys):
@@ -48,6 +62,7 @@ def test_pareto_command_on_a_small_scene(tmp_path, capsys):
     )
     assert code == 0
     rows = list(csv.DictReader(open(out / "pareto.csv")))
+    assert all(r["resolved"] in ("0", "1") for r in rows)
     fams = [r["family"] for r in rows]
     # the lumped family only (sweeps_and_accuracy.ipynb runs the dt family in the default run)
     assert fams.count("thesis") == 1 and fams.count("lumped") == 2 and len(fams) == 3, fams
