@@ -182,10 +182,18 @@ def run(args) -> dict:
         print(f"{name:>15} = {format_value(name, v, result.standard_errors[name], result.discretisation_errors.get(name))}")
     if result.model:
         m = result.model
-        print(
-            f"values from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s, Newton tolerance {m['tol']:.0e}; "
-            "± statistical (noise), ± discretisation (the last space and time refinements' moves, in quadrature)"
-        )
+        if "extrapolated_from_dt" in m:
+            a, b = m["extrapolated_from_dt"]
+            print(
+                f"values extrapolated to dt 0 (Richardson, BDF-alpha's order 2) from the models with {m['nodes']} nodes, "
+                f"dt {a:.3g} and {b:.3g} s, Newton tolerance {m['tol']:.0e}; ± statistical (noise), ± discretisation "
+                "(the last space refinement's move and the extrapolation's uncertainty, in quadrature)"
+            )
+        else:
+            print(
+                f"values from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s, Newton tolerance {m['tol']:.0e}; "
+                "± statistical (noise), ± discretisation (the last space and time refinements' moves, in quadrature)"
+            )
     for name, entries in result.profiles.items():
         for k, pr in enumerate(entries if isinstance(entries, list) else [entries]):
             print(_profile_line(name if not isinstance(entries, list) else f"{name}[{k}]", UNITS[name], pr))

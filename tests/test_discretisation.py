@@ -172,3 +172,58 @@ def test_refits_of_a_nonlinear_model_reach_each_grids_own_optimum():
     for lv in levels[1:]:
         best, se = Oscillation(lv.nodes, lv.dt).optimum()
         assert np.all(np.abs(lv.theta - best) < 0.05 * se), (lv.what, lv.nodes, lv.dt, (lv.theta - best) / se)
+
+
+P_T2, P_T3 = 3.0 * RNG.standard_normal((2, UNKNOWNS, UNKNOWNS))  # second- and third-order dt terms
+
+
+class SecondOrder(Linear):
+    """`Linear` with a second-order scheme in time: the grid's operator is
+    ``A0 (I + P_T2 dt^2 + P_T3 dt^3)``, so the optimum moves by O(dt^2) and the extrapolation
+    to dt 0 has a closed form (``SecondOrder(nodes, 0.0).optimum()``)."""
+
+    def __init__(self, nodes, dt, offset=lambda dt: 0.0):
+        super().__init__(nodes, dt, offset)
+        self.A = A0 @ (np.eye(UNKNOWNS) + P_T2 * dt**2 + P_T3 * dt**3)
+
+    def refined(self, nodes, dt, tol):
+        return SecondOrder(nodes, dt)
+
+    def reported(self, theta):
+        return {"a": np.asarray(theta)[:2], "b": float(np.asarray(theta)[2])}
+
+    def labels(self):
+        return ["a[0]", "a[1]", "b"]
+
+
+def test_second_order_time_moves_are_extrapolated_to_dt_zero():
+    """Time moves that shrink 4x per halving: the chain stops once the Richardson extrapolation's
+    uncertainty is below a third of an SE (before it would by halving alone), and the reported
+    values are the extrapolation, which lies within its reported error of the dt -> 0 optimum,
+    far closer than the finest grid's own."""
+    from identify.result import Result
+
+    coarse = SecondOrder(10, 0.1)
+    theta, chi2, se = _start(coarse)
+    J = coarse.A / SIGMA
+    levels, failed = discretisation.refine(coarse, theta, J, se, max_levels=6, chi2=chi2)
+    times = [lv for lv in levels if lv.what == "time"]
+    assert not failed and len(times) >= 2
+    moves = [np.max(np.abs(lv.move_se)) for lv in times]
+    assert moves[-1] > 1 / 3  # halving alone has not settled it
+    order = np.log2(np.linalg.norm(times[-2].move_se) / np.linalg.norm(times[-1].move_se))
+    assert abs(order - 2) < 0.5, order
+    result = Result(
+        labels=coarse.labels(), values=coarse.reported(theta), standard_errors={"a": se[:2].tolist(), "b": float(se[2])},
+        correlation=[], sigma=[SIGMA, SIGMA], loss=chi2, rms=[],
+    )  # fmt: skip
+    rep = discretisation.report(coarse, theta, J, result, max_levels=6)
+    assert rep.model["extrapolated_from_dt"] == [times[-2].dt, times[-1].dt]
+    limit = SecondOrder(coarse.nodes, 0.0).optimum()
+    got = np.append(rep.values["a"], rep.values["b"])
+    err = np.append(rep.discretisation_errors["a"], rep.discretisation_errors["b"])
+    finest = times[-1].theta
+    assert np.all(np.abs(got - limit) <= err + 0.05 * se), ((got - limit) / se, err / se)
+    assert np.all(err <= se / 3 + 1e-12)
+    assert np.max(np.abs(got - limit) / se) < 0.2 * np.max(np.abs(finest - limit) / se)
+    assert "not negligible" not in rep.message
