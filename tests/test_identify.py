@@ -168,7 +168,7 @@ def test_free_motion_screen_is_blind_to_aliasing_push_camera_and_clock():
 
 def test_platform_screen_finds_a_finer_grid_recordings_lengths():
     """The push-release start on `triskele_push_release_r1` (truth drawn inside the prior,
-    simulated 3x finer in space and 5x in time than the fit's grid): the frequency features left
+    simulated 3x finer in space and 40x in time than the fit's grid): the frequency features left
     30 % of the prior matching and none of the polished candidates near the truth; the
     time-domain screen of the lumped modes puts its best within 50 um of the truth on every rod
     (the prior is +-2 mm) and tau within 20 %, from tau a factor 3 off. Measured: 15 um, 1 %."""
@@ -324,9 +324,10 @@ SUITE.append("cantilever_independent")  # made by experiments_data/independent_r
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SUITE)
 def test_fit_recovers_random_truths_simulated_finer(name, tmp_path):
-    """The random-truth suite (truths drawn inside the prior, simulated 3x finer in space and 5x
-    in time than the fit's grid), fitted from the nominal lengths and the sidecar's tau (a factor
-    3 off): every physical truth within 3 combined uncertainties (statistical and discretisation)."""
+    """The random-truth suite (truths drawn inside the prior, simulated 3x finer in space and 40x
+    (Triskele) or 100x (cantilever) in time than the fit's grid), fitted from the nominal lengths
+    and the sidecar's tau (a factor 3 off): every physical truth within 3 combined uncertainties
+    (statistical and discretisation)."""
     rec = load_recording(f"{DATA}/{name}.csv")
     res = fit(Problem(rec, ("tau", "lengths")), state_dir=tmp_path)
     assert res.converged
