@@ -446,18 +446,18 @@ def test_rod_tip_angle_is_the_tangent_angle_in_the_bending_plane():
 
 def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsys):
     """The whole `pcrjax-identify` path on a small case, in the default run: a cantilever
-    recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 5x in
+    recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 40x in
     time than the fit's (N 6, dt 2 ms), fitted from tau a factor 3 off and the length 1.6 mm off
     (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, the
-    profiles, one space and one time refinement, fit.json and the plots), with 2 % of its frames
-    thrown off by decoding errors: every truth within 3 combined uncertainties, and the wild
-    frames reported."""
+    profiles, one space and two time refinements, the extrapolation to dt 0, fit.json and the
+    plots), with 2 % of its frames thrown off by decoding errors: every truth within 3 combined
+    uncertainties, and the wild frames reported."""
     from identify import cli
 
     gen = _generator()
     spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
     spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
-    spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
+    spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=5e-5)
     spec["rod"] = dict(tau=3 * spec["truth"]["tau"])
     path = gen.generate("small_release", spec, tmp_path)
     # a decoding error now and then: 2 % of the frames thrown 5 mm off (the noise is 2 um)
@@ -467,7 +467,7 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     pose[wild, :2] += 5e-3 * np.array([1.0, -1.0])
     write_frames(path, rec.t, pose)
     out = tmp_path / "fit"
-    assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "1", "--profile"]) == 0
+    assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "2", "--profile"]) == 0
     printed = capsys.readouterr().out
     print(printed)
     assert "± statistical (noise), ± discretisation" in printed
@@ -485,21 +485,23 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     for name in ("tau", "lengths", "time_offset"):
         err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
         assert abs(res["values"][name] - truth[name]) < 3 * err, (name, res["values"][name], truth[name], err)
-    # one space refinement (2N at the fit's dt), then one time refinement (dt / 2); the space
-    # move is small, so it is the fit's grid's space error and time refines at the fit's N 6
-    tol, space, step = res["refinements"]
-    assert (tol["refit"], space["refit"], step["refit"]) == ("tolerance", "space", "time")
+    # one space refinement (2N at the fit's dt), then two time refinements (dt / 2, dt / 4); the
+    # space move is small, so it is the fit's grid's space error and time refines at the fit's N 6
+    tol, space, step, step2 = res["refinements"]
+    assert [r["refit"] for r in res["refinements"]] == ["tolerance", "space", "time", "time"]
     assert space["largest_move_se"] < 1 / 3
-    assert (space["nodes"], step["nodes"], step["dt"]) == (12, 6, pytest.approx(1e-3))
-    assert res["model"] == dict(nodes=6, dt=pytest.approx(1e-3), tol=step["tol"])
-    # each refit's values are listed; the reported ones are the last refit's, and their
-    # discretisation error combines the space and the time refit's moves, each from the fit's
-    # own values (the tolerance refit's, up to the tolerance error)
-    assert step["values"] == res["values"] and set(tol["values"]) == set(res["values"])
-    moves = (
-        abs(space["values"]["lengths"] - tol["values"]["lengths"]),
-        abs(step["values"]["lengths"] - tol["values"]["lengths"]),
+    assert (space["nodes"], step["nodes"], step["dt"], step2["dt"]) == (12, 6, pytest.approx(1e-3), pytest.approx(5e-4))
+    # the time moves shrink at BDF-alpha's order 2 (measured: 26 and 6.0 SE), so the values are
+    # extrapolated to dt 0 from the two time refits', v2 + (v2 - v1)/3, and their time error is
+    # |4 m2 - m1| / 3, each move from the fit's own values (the tolerance refit's, up to the
+    # tolerance error); the space error is the space refit's move
+    assert res["model"] == dict(
+        nodes=6, dt=pytest.approx(5e-4), tol=step2["tol"], extrapolated_from_dt=[pytest.approx(1e-3), pytest.approx(5e-4)]
     )
+    assert "values extrapolated to dt 0" in printed
+    v0, v1, v2 = (r["values"]["lengths"] for r in (tol, step, step2))
+    assert res["values"]["lengths"] == pytest.approx(v2 + (v2 - v1) / 3, rel=1e-12)
+    moves = (abs(space["values"]["lengths"] - v0), abs(4 * (v2 - v1) - (v1 - v0)) / 3)
     assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.5 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
