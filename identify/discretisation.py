@@ -25,18 +25,21 @@ combines the last space move and the last time move in quadrature (for a converg
 each about the error of the coarser of its two grids, so a bound on the finer's); if a last move
 of a measured parameter still exceeds a third of its standard error, the result says which.
 
+The noise levels were estimated from the fit's residuals, which hold the coarse grid's model
+error too; they and the standard errors are rescaled by the last refit's reduced chi-square
+(one factor for all columns), so the standard errors are the noise's alone.
+
 **Extrapolation in dt.** BDF-alpha is second order, so once two successive time moves shrink at
 that order (observed order log2(|m1| / |m2|) within ``ORDER_BAND`` of 2, over the measured
 parameters in standard errors) the answer at dt -> 0 is Richardson's v2 + m2/3, with the error
 estimate |4 m2 - m1|/3: the difference between the extrapolations from the last two pairs of
 grids (zero only where the chain is exactly second order; it then bounds the error of the
 coarser extrapolation, an order above the last move). It is used where it is below the last
-move, and it is what the time chain must bring below a third of a standard error. On the
-released cantilever (dt 1 ms, modes at 9 and 178 Hz) the time moves were 618, 169 and 42 standard
-errors down to dt 0.125 ms: reaching a third of one by halving alone would take dt near 10 us.
-The noise levels were estimated from the fit's residuals, which hold the coarse grid's model
-error too; they and the standard errors are rescaled by the last refit's reduced chi-square
-(one factor for all columns), so the standard errors are the noise's alone.
+move, and it is what the time chain must bring below a third of a standard error. On
+`cantilever_independent` (another code's converged recording; fit at N 20, dt 1 ms) the length's
+time moves were 299, 76 and 19 standard errors down to dt 0.125 ms, at observed order 2.00:
+the finest grid's length lies 4.3 standard errors from the truth, the extrapolation 2.1, with an
+extrapolation error of 0.01; reaching a third of one by halving alone would take dt near 10 us.
 
 Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
 the coarse model, each step taken only where it lowers the cost): a finer grid moves the
@@ -249,9 +252,9 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     of the last model `refine` evaluated, or their extrapolation to dt 0 where the last two time
     moves allow it (`extrapolation`), their discretisation error (the last space refinement's
     move and the last time refinement's move or the extrapolation's uncertainty, combined in
-    quadrature: the two errors add independently to leading order) and tolerance error, the model they come from and the refits made; its
-    message says when a last refinement still moved a measured value (`Problem.measured`) by
-    more than a third of its standard error."""
+    quadrature: the two errors add independently to leading order) and tolerance error, the
+    model they come from and the refits made; its message says when a last refinement still
+    moved a measured value (`Problem.measured`) by more than a third of its standard error."""
     levels, failed = refine(
         problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends
     )

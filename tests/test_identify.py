@@ -325,9 +325,9 @@ SUITE.append("cantilever_independent")  # made by experiments_data/independent_r
 @pytest.mark.parametrize("name", SUITE)
 def test_fit_recovers_random_truths_simulated_finer(name, tmp_path):
     """The random-truth suite (truths drawn inside the prior, simulated 3x finer in space and 40x
-    (Triskele) or 100x (cantilever) in time than the fit's grid), fitted from the nominal lengths
-    and the sidecar's tau (a factor 3 off): every physical truth within 3 combined uncertainties
-    (statistical and discretisation)."""
+    (Triskele push-release), 100x (cantilever) or 5x (Triskele actuator step) in time than the
+    fit's grid), fitted from the nominal lengths and the sidecar's tau (a factor 3 off): every
+    physical truth within 3 combined uncertainties (statistical and discretisation)."""
     rec = load_recording(f"{DATA}/{name}.csv")
     res = fit(Problem(rec, ("tau", "lengths")), state_dir=tmp_path)
     assert res.converged
