@@ -79,19 +79,23 @@ ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrin
 ORDER_BAND = 0.5  # time moves shrinking at an observed order within this of 2 are extrapolated
 
 
-def extrapolation(prev_move, last_move, measured):
-    """(usable, error) of Richardson's extrapolation to dt -> 0 from two successive time moves
-    (in standard errors, per parameter): usable where the measured parameters' moves shrink at
-    an observed order within ``ORDER_BAND`` of BDF-alpha's 2 and the error estimate
-    |4 m2 - m1| / 3 of the extrapolated value is below the last move (module doc)."""
-    prev_move, last_move = np.asarray(prev_move, float), np.asarray(last_move, float)
-    error = np.abs(4.0 * last_move - prev_move) / 3.0
-    a, b = np.linalg.norm(prev_move[measured]), np.linalg.norm(last_move[measured])
+def extrapolation(prev, last, measured):
+    """(usable, error) of Richardson's extrapolation to dt -> 0 from two successive time refits
+    `Level` ``prev`` and ``last``, the error in ``last``'s standard errors per parameter: usable
+    where the measured parameters' moves shrink at an observed order within ``ORDER_BAND`` of
+    BDF-alpha's 2 and the error estimate |4 m2 - m1| / 3 of the extrapolated value is below the
+    last move (module doc)."""
+    # each move is in the standard errors of its own model (rescaled by its reduced chi-square):
+    # m1 goes into last's, or a 2 % difference in the scales leaves several SE in 4 m2 - m1
+    m1 = np.asarray(prev.move_se, float) * np.sqrt(prev.chi2 / last.chi2)
+    m2 = np.asarray(last.move_se, float)
+    error = np.abs(4.0 * m2 - m1) / 3.0
+    a, b = np.linalg.norm(m1[measured]), np.linalg.norm(m2[measured])
     if not (a > 0 and b > 0):
         return False, error
     order = np.log2(a / b)
     shrinks = abs(order - ORDER["time"]) <= ORDER_BAND
-    return bool(shrinks and np.max(error[measured]) < np.max(np.abs(last_move[measured]))), error
+    return bool(shrinks and np.max(error[measured]) < np.max(np.abs(m2[measured]))), error
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,7 +236,7 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
                 return levels, failed
             settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
             if what == "time" and prev is not None:
-                usable, error = extrapolation(prev.move_se, lv.move_se, problem.measured)
+                usable, error = extrapolation(prev, lv, problem.measured)
                 settled = settled or (usable and np.max(error[problem.measured]) <= THIRD)
             prev = lv
             if settled and what == "space":  # the coarser grid's space error is this move: time refines there
@@ -279,7 +283,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         moved[what] = _difference(reported(idx[-1]), reported(last.parent))
         moves = np.where(problem.measured, np.abs(last.move_se), 0.0)
         if what == "time" and len(idx) >= 2:
-            usable, error = extrapolation(levels[idx[-2]].move_se, last.move_se, problem.measured)
+            usable, error = extrapolation(levels[idx[-2]], last, problem.measured)
             if usable:  # Richardson to dt -> 0 from the last two time moves
                 v0, v1, v2 = reported(levels[idx[-2]].parent), reported(idx[-2]), reported(idx[-1])
                 final = {k: np.asarray(v2[k]) + (np.asarray(v2[k]) - np.asarray(v1[k])) / 3.0 for k in v2}
