@@ -132,8 +132,9 @@ PRIOR_LENGTH = 2e-3
 PUSH_ERROR = 0.1
 TAU_DECADE = {"triskele": (1e-4, 1e-3), "cantilever": (1e-3, 1e-2)}
 # The truth's grid: nodes x3, dt divided per experiment. The actuator steps stay at dt / 5: at
-# dt / 40 the generator's step rate fell from about 600 to 25 steps/s at t = 0.76 s (not yet
-# diagnosed), so their truths still carry the 5x grid's time error.
+# dt / 40, after the move, every step took about 3 Newton iterations and a fresh Jacobian every
+# other step (at Newton tolerance 1e-10 and 1e-9 alike), and the generator slowed from about 600
+# to 25 steps/s (not yet diagnosed), so their truths still carry the 5x grid's time error.
 FINER = dict(nodes=3, dt={"push_release": 40, "release": 100, "actuator_step": 5})
 
 
