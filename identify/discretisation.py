@@ -286,11 +286,10 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
             usable, error = extrapolation(levels[idx[-2]], last, problem.measured)
             if usable:  # Richardson to dt -> 0 from the last two time moves
                 v0, v1, v2 = reported(levels[idx[-2]].parent), reported(idx[-2]), reported(idx[-1])
-                final = {k: np.asarray(v2[k]) + (np.asarray(v2[k]) - np.asarray(v1[k])) / 3.0 for k in v2}
-                moved[what] = {
-                    k: np.abs(4.0 * (np.asarray(v2[k]) - np.asarray(v1[k])) - (np.asarray(v1[k]) - np.asarray(v0[k]))) / 3.0
-                    for k in v2
-                }
+                m1 = {k: np.asarray(v1[k]) - np.asarray(v0[k]) for k in v2}
+                m2 = {k: np.asarray(v2[k]) - np.asarray(v1[k]) for k in v2}
+                final = {k: np.asarray(v2[k]) + m2[k] / 3.0 for k in v2}
+                moved[what] = {k: np.abs(4.0 * m2[k] - m1[k]) / 3.0 for k in v2}
                 moves = np.where(problem.measured, error, 0.0)
                 model["extrapolated_from_dt"] = [levels[idx[-2]].dt, last.dt]
         worst = float(np.max(moves))

@@ -29,6 +29,7 @@ from .physics.lumped import Chain, displaced, normalised, qmul, qrotate_inverse
 from .physics.rotations import quaternion
 
 METHODS = ("kvaerno5", "tsit5")
+RTOL = 1e-6  # the integration's default relative tolerance (see `lumped_rollout`)
 
 
 class LumpedTrajectory(eqx.Module):
@@ -152,7 +153,7 @@ def _jacobian_at_rest(scene, segments: int):
     return jax.jacfwd(lambda y: ravel_pytree(f(t, unflatten(y), None))[0])(y0)
 
 
-def step_budget(scene, segments: int, rtol: float = 1e-6) -> int:
+def step_budget(scene, segments: int, rtol: float = RTOL) -> int:
     """diffrax's step limit (accepted and rejected steps) for `lumped_rollout` over the scene's
     duration T: 4 rho T (1e-6/rtol)^(1/5) + 10 000, rho the spectral radius of the ODE's Jacobian
     at the static equilibrium. Explicit steps are held to about 1/rho by stability (the released
@@ -176,7 +177,7 @@ def lumped_rollout(
     segments: int = 20,
     *,
     method: str = "tsit5",
-    rtol: float = 1e-6,
+    rtol: float = RTOL,
     atol: float | None = None,
     max_steps: int | None = None,
 ) -> LumpedTrajectory:
@@ -232,7 +233,7 @@ def simulate_lumped(scene, segments: int = 20, *, max_steps: int | None = None, 
     """`lumped_rollout` under `jit`, raising `ConvergenceError` if the equilibrium or the
     integration failed (step budget spent, step size collapsed)."""
     if max_steps is None:
-        max_steps = step_budget(scene, segments, kw.get("rtol", 1e-6))
+        max_steps = step_budget(scene, segments, kw.get("rtol", RTOL))
     traj = eqx.filter_jit(lumped_rollout)(scene, segments, max_steps=max_steps, **kw)
     if not bool(traj.converged):
         raise ConvergenceError(

@@ -225,7 +225,9 @@ def pareto_front(rows, floor: float = 0.0) -> np.ndarray:
 def cheapest(rows, target: float, floor: float = 0.0) -> dict | None:
     """The row of least wall time per simulated second whose error is at most ``target``; none
     where ``target`` is below the reference's ``floor`` (no error that small is resolved)."""
-    ok = [r for r in rows if r["error"] <= target and floor <= target]
+    if target < floor:
+        return None
+    ok = [r for r in rows if r["error"] <= target]
     return min(ok, key=lambda r: r["wall_per_sim_s"]) if ok else None
 
 
