@@ -77,6 +77,8 @@ STILL = 0.05  # a refit ends when its linearisation puts the parameters this man
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
 ORDER_BAND = 0.5  # time moves shrinking at an observed order within this of 2 are extrapolated
+RIVAL_SE = 3.0  # a start this many standard errors from the answer (in a measured parameter) may lie in another basin
+CLOSE = 2.0  # optima whose losses differ by less (chi-square 4: two standard deviations) fit a recording equally well
 
 
 def extrapolation(prev, last, measured):
@@ -175,7 +177,7 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     return theta, 0.5 * float(r @ r), total
 
 
-def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,)):
+def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
     """(the `Level` list: the tolerance refit first, then the space refits, then the time
     refits; the failures: a refit that failed ends the list) for the fit ``problem`` at its
     optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
@@ -183,11 +185,14 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
     move of a measured parameter exceeds a third of a standard error, up to ``max_levels``
     times; then time: half the dt, the same way, at the coarser grid of a space move below a
     third of an SE (else at the finest). Each move is in the standard errors of its own model
-    (rescaled by its reduced chi-square). ``progress(message)``."""
+    (rescaled by its reduced chi-square). Then each start in ``rivals`` (theta) that lies in
+    another basin contests the answer on the finest grid (`_contest`). ``progress(message)``.
+    The failures and the contests' findings are returned as notes."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
     levels, failed = [], []
+    say = progress if progress is not None else (lambda msg: None)
 
     def refit(what, n, h, base, windows, parent, predicted=None):
         t0 = time.perf_counter()
@@ -244,14 +249,97 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
                 break
+    for start in rivals:
+        if _contest(problem, levels, failed, np.asarray(start, float), se_theta, chi2, m, say, window_ends):
+            break
     return levels, failed
+
+
+def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends) -> bool:
+    """Whether ``start`` (theta: where the fit began) takes the answer over from the chain's
+    (`refine`'s module text, "Rival basins"): on the finest grid its push and camera are fitted
+    (`Problem.fit_linear`) and, unless it then fits more than ``WORSE`` times worse than the
+    answer, it is refitted with the fit's model's Jacobian at it held, through the windows. That
+    optimum is appended as a "rival" `Level`; if its loss is below the answer's by more than
+    ``CLOSE``, its time error is measured by refits at 2 and 4 times the finest dt (a "rival"
+    level at 4 dt, then two "time" levels, coarse to fine, that end the list). ``notes`` gets
+    what was found."""
+    last = levels[-1]
+    if last.what != "time":
+        return False
+    scale = np.sqrt(last.chi2 / chi2)
+    far = np.max(np.abs((start - last.theta) / (se_theta * scale))[problem.measured])
+    if far <= RIVAL_SE:
+        return False
+    t0 = time.perf_counter()
+    fine = last.problem
+    say(f"the start, {far:.3g} standard errors from the answer: refit with {last.nodes} nodes, dt {last.dt:.3g} s ...")
+    start, cost = fine.fit_linear(start)
+    answer = 0.5 * last.chi2 * m
+    if not cost <= WORSE * answer:
+        say(f"  its loss {cost:.6g} against the answer's {answer:.6g}: not a rival")
+        return False
+    held = np.asarray(problem.residual_and_jacobian(start)[1])
+    try:
+        th, cost, it = chord_refit(fine, start, held, window_ends)
+    except FitError as e:
+        notes.append(f"the refit from the start on the finest grid failed ({e})")
+        return False
+    levels.append(
+        Level("rival", last.nodes, last.dt, last.tol, th, (th - last.theta) / (se_theta * scale), 2 * cost / m, it,
+              time.perf_counter() - t0, fine, len(levels) - 1)
+    )  # fmt: skip
+    say(f"  its optimum's loss {cost:.6g} against the answer's {answer:.6g}")
+    moved = problem.labels()[int(np.argmax(np.where(problem.measured, np.abs(levels[-1].move_se), 0.0)))]
+    if cost >= answer - CLOSE:
+        if cost < answer + CLOSE:
+            notes.append(
+                f"a second optimum, {np.max(np.abs(levels[-1].move_se)):.3g} standard errors away in {moved} (the refinements' "
+                f'"rival"), fits the recording as well on the finest grid (loss {cost:.6g} against {answer:.6g}): the recording '
+                "does not tell the two apart"
+            )
+        return False
+    chain = [(th, cost, it, fine, time.perf_counter() - t0)]
+    for k in (1, 2):  # the rival's time error: its optimum on coarser grids
+        t0 = time.perf_counter()
+        h = last.dt * 2**k
+        say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
+        coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
+        try:
+            th, cost, it = chord_refit(coarser, chain[-1][0], held, (None,))
+        except FitError as e:
+            notes.append(
+                f"the better basin's refit with dt {h:.3g} s failed ({e}): its time error is not measured, the answer stands"
+            )
+            return False
+        if 2 * cost / m > WORSE * chi2:
+            notes.append(
+                f"the better basin's refit with dt {h:.3g} s reached a reduced chi-square of {2 * cost / m:.3g}: the basin is "
+                "not found on that grid, its time error is not measured, the answer stands"
+            )
+            return False
+        chain.append((th, cost, it, coarser, time.perf_counter() - t0))
+    (v1, c1, i1, p1, w1), (v2, c2, i2, p2, w2), (v4, c4, i4, p4, w4) = chain
+    se = lambda c: se_theta * np.sqrt(2 * c / m / chi2)  # noqa: E731
+    base = len(levels)
+    levels += [
+        Level("rival", last.nodes, 4 * last.dt, last.tol, v4, np.zeros_like(v4), 2 * c4 / m, i4, w4, p4, None),
+        Level("time", last.nodes, 2 * last.dt, last.tol, v2, (v2 - v4) / se(c2), 2 * c2 / m, i2, w2, p2, base),
+        Level("time", last.nodes, last.dt, last.tol, v1, (v1 - v2) / se(c1), 2 * c1 / m, 0, w1, p1, base + 1),
+    ]
+    notes.append(
+        f"on the finest grid ({last.nodes} nodes, dt {last.dt:.3g} s) the basin the fit started in fits better than the one "
+        f"the fit's grid led to (loss {c1:.6g} against {answer:.6g}; {moved} {np.max(np.abs(levels[base - 1].move_se)):.3g} "
+        "standard errors away): the values are from the start's basin, its time error from refits at 2 and 4 times that dt"
+    )
+    return True
 
 
 def _difference(a: dict, b: dict) -> dict:
     return {k: np.abs(np.asarray(a[k]) - np.asarray(b[k])) for k in a}
 
 
-def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,)):
+def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,), rivals=()):
     """``result`` (the `fit.Result` of ``problem`` at ``theta``, Jacobian ``J``) with the values
     of the last model `refine` evaluated, or their extrapolation to dt 0 where the last two time
     moves allow it (`extrapolation`), their discretisation error (the last space refinement's
@@ -259,10 +347,10 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     quadrature: the two errors add independently to leading order) and tolerance error, the
     model they come from and the refits made; its message says when a last refinement still
     moved a measured value (`Problem.measured`) by more than a third of its standard error."""
-    levels, failed = refine(
-        problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends
+    levels, notes = refine(
+        problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends, rivals
     )
-    message = " ".join([result.message, *failed]).strip()
+    message = " ".join([result.message, *notes]).strip()
     chains = {w: [i for i, lv in enumerate(levels) if lv.what == w] for w in ("space", "time")}
     if not all(chains.values()):  # a refinement failed: the fit's own values, no error claimed
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)

@@ -182,11 +182,13 @@ def fit(
     theta = np.asarray(problem.to_theta(problem.initial_values))
     pb = problem.with_noise(NOMINAL_SIGMA)  # the noise levels and Huber loss of the current pass
     done, history, total_it, resume, summary = 0, [], 0, None, []
+    start = None  # where the modal start put the fit: a rival basin on the finest grid (`discretisation`)
     if state_file is not None and state_file.is_file():
         st = json.loads(state_file.read_text())
         if st.get("labels") == problem.labels() and st.get("recording") == str(problem.rec.path):
             done, history, total_it, resume = st["stage"], st["history_before"], st["iterations_before"], st["lm"]
             theta, pb = np.asarray(st["lm"]["theta"]), problem.with_noise(st["sigma"], st.get("huber"))
+            start = None if st.get("start") is None else np.asarray(st["start"])
 
     def save(lm_state, k):
         if state_file is not None:
@@ -201,6 +203,7 @@ def fit(
                         history_before=history,
                         iterations_before=total_it,
                         lm=lm_state,
+                        start=None if start is None else start.tolist(),
                     )
                 )
             )
@@ -214,6 +217,7 @@ def fit(
             compiled = []
             warm = lambda: compiled.append(background.submit(pb.residual_and_jacobian, theta, 0.0))  # noqa: E731
             theta, screened = modal_start(pb, theta, progress, warm=warm)
+            start = theta.copy()
             for job in compiled:
                 job.result()
         finally:  # an error in the modal start is reported at once, not after the compile
@@ -312,5 +316,6 @@ def fit(
             refine_levels,
             None if progress is None else (lambda msg: progress(msg, 0, None, 0.0)),
             window_ends=[w for _, w in stages[:-1]],
+            rivals=[] if start is None else [start],
         )
     return dataclasses.replace(result, wall_s=time.perf_counter() - t0)
