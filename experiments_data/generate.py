@@ -13,8 +13,8 @@ uses), so a fit can recover them to the noise level. The random-truth suite (`ra
 names ending ``_r1``, ``_r2``) is not the fit's own model: its truths are drawn, seeded, inside
 the prior a fit is promised to hold in (each length within 2 mm of nominal, the damping time
 anywhere in a decade, the push within 10 % of the recorded one) and simulated on a grid 3x finer
-in space and 40x (Triskele push-release), 100x (cantilever) or 5x (Triskele actuator step, see
-`FINER`) in time than the sidecar's (``[provenance] truth_nodes``, ``truth_dt``), so a fit
+in space and 40x (Triskele push-release) or 100x (cantilever) in time than the sidecar's, or
+extrapolated to dt 0 from 5x and 10x (Triskele actuator step, `EXTRAPOLATED`) (``[provenance] truth_nodes``, ``truth_dt``), so a fit
 meets the discretisation error it would meet on a real log. The time step is what makes the
 truth's grid converged at the noise: at 5x in time the filmed pose was off the converged motion
 by 17 um on the cantilever (noise 2 um) and 2.9 nm on the Triskele push (noise 2 nm), which put
@@ -131,11 +131,13 @@ RECORDINGS = {
 PRIOR_LENGTH = 2e-3
 PUSH_ERROR = 0.1
 TAU_DECADE = {"triskele": (1e-4, 1e-3), "cantilever": (1e-3, 1e-2)}
-# The truth's grid: nodes x3, dt divided per experiment. The actuator steps stay at dt / 5: at
-# dt / 40, after the move, every step took about 3 Newton iterations and a fresh Jacobian every
-# other step (at Newton tolerance 1e-10 and 1e-9 alike), and the generator slowed from about 600
-# to 25 steps/s (not yet diagnosed), so their truths still carry the 5x grid's time error.
-FINER = dict(nodes=3, dt={"push_release": 40, "release": 100, "actuator_step": 5})
+# The truth's grid: nodes x3, dt divided per experiment. The actuator steps' truths are Richardson's
+# extrapolation from dt / 5 and dt / 10 (`EXTRAPOLATED`; BDF-alpha is second order, so s(h) +
+# (s(h) - s(2h)) / 3 removes the h^2 term): brute force at dt / 40 took about 3.5 Newton iterations
+# and a fresh Jacobian every other step after the move, on 5 shooting segments per rod where dt / 5
+# has fewer, 25 steps/s in all (about 2 h a recording).
+FINER = dict(nodes=3, dt={"push_release": 40, "release": 100, "actuator_step": 10})
+EXTRAPOLATED = ("actuator_step",)  # truths extrapolated to dt 0 from dt / FINER and twice that
 
 
 def _camera_truth(rng, seed: int) -> dict:
@@ -192,7 +194,7 @@ def random_suite(seed: int = 2026) -> dict:
         out[f"triskele_actuator_step_r{k}"] = dict(
             base,
             description=f"Triskele-bot actuator step (bases by {', '.join(f'{m * 1e6:+.2f}' for m in move)} um in 10 ms at "
-            f"0.05 s), truth drawn at random inside the prior (suite seed {seed}), simulated 3x finer in space, 5x in time.",
+            f"0.05 s), truth drawn at random inside the prior (suite seed {seed}), simulated 3x finer in space, extrapolated to dt 0 from 5x and 10x in time.",
             rod=_start_tau(rng, tau),
             actuation=dict(base["actuation"], final=move),
             truth=dict(base["truth"], tau=round(tau, 7), lengths=lengths, **_camera_truth(rng, seed + 10 * k + 2)),
@@ -354,6 +356,8 @@ def sidecar(name: str, spec: dict) -> dict:
     )
     if "truth_solver" in spec:  # the truth simulated on another grid than the fit's
         side["provenance"].update(truth_nodes=spec["truth_solver"]["nodes"], truth_dt=spec["truth_solver"]["dt"])
+        if spec["experiment"] in EXTRAPOLATED:
+            side["provenance"]["truth_extrapolated_from_dt"] = [2 * spec["truth_solver"]["dt"], spec["truth_solver"]["dt"]]
     return side
 
 
@@ -379,8 +383,17 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
     params = {k: jnp.asarray(v, jnp.float64) for k, v in truth.items() if k not in SENSOR}
     s = experiment.apply(scene, params)
     traj = pcrjax.simulate(s, progress=True)
+    samples, dt = experiment.planar_pose(s, traj), float(s.solver.dt)
+    if "truth_solver" in spec and spec["experiment"] in EXTRAPOLATED:
+        coarse = pcrjax.with_solver(s, dt=2 * dt)
+        twice = np.asarray(experiment.planar_pose(coarse, pcrjax.simulate(coarse, progress=True)))
+        fine = np.asarray(samples)[::2][: twice.shape[0]]
+        print(
+            f"{name}: the truth moved by up to {np.max(np.abs(fine - twice), axis=0).tolist()} (m, m, rad) from dt {2 * dt:.3g} s"
+        )
+        samples, dt = fine + (fine - twice[: fine.shape[0]]) / 3.0, 2 * dt
     path = out_dir / f"{name}.csv"
-    back = film(path, experiment.planar_pose(s, traj), s.solver.dt, t_frames, spec["exposure"], truth, side)
+    back = film(path, samples, dt, t_frames, spec["exposure"], truth, side)
     print(
         f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
         f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad"

@@ -227,3 +227,93 @@ def test_second_order_time_moves_are_extrapolated_to_dt_zero():
     assert np.all(err <= se / 3 + 1e-12)
     assert np.max(np.abs(got - limit) / se) < 0.2 * np.max(np.abs(finest - limit) / se)
     assert "not negligible" not in rep.message
+
+
+class TwoBasins(Linear):
+    """One unknown x whose loss has two basins on every grid, near ``a = C dt^2`` and
+    ``b = 1 + C dt^2``: rows ``W (x - a)(x - b)``, ``H (x - b)``, ``Q(dt) (x - a)`` and unit noise.
+    The basin at a costs about ``H^2 / 2``, the one at b ``Q^2 / 2``: with ``Q = 8 dt / 0.1``
+    (``flips``) the fit's grid (dt 0.1) prefers a by 24 and dt 0.025 prefers b by 6; at dt 0 the
+    optimum is x = 1 exactly. Without ``flips`` (Q = 8) b is worse on every grid."""
+
+    W, H, C = 100.0, 4.0, 10.0
+    NOISE = np.random.default_rng(11).standard_normal(3 * FRAMES - 3)
+
+    def __init__(self, nodes, dt, flips=True):
+        super().__init__(nodes, dt)
+        self.flips = flips
+        self.measured = np.ones(1, bool)
+
+    def _rows(self, x):
+        a, b = self.C * self.dt**2, 1.0 + self.C * self.dt**2
+        q = 8.0 * self.dt / 0.1 if self.flips else 8.0
+        r = np.concatenate([[self.W * (x - a) * (x - b), self.H * (x - b), q * (x - a)], self.NOISE])
+        J = np.zeros((r.size, 1))
+        J[:3, 0] = [self.W * (2 * x - a - b), self.H, q]
+        return r, J
+
+    def residual(self, theta, t_end=None):
+        return self.residual_and_jacobian(theta, t_end)[0]
+
+    def residual_and_jacobian(self, theta, t_end=None):
+        rows = np.repeat(self.window(t_end)[0] > 0, 3)
+        r, J = self._rows(float(np.asarray(theta)[0]))
+        return np.where(rows, r, 0.0), np.where(rows[:, None], J, 0.0)
+
+    def fit_linear(self, theta, t_end=None):
+        r = self.residual(theta, t_end)
+        return np.asarray(theta, float), 0.5 * float(r @ r)
+
+    def refined(self, nodes, dt, tol):
+        return TwoBasins(nodes, dt, self.flips)
+
+    def reported(self, theta):
+        return {"x": float(np.asarray(theta)[0])}
+
+    def labels(self):
+        return ["x"]
+
+    def optimum(self, start):
+        from scipy.optimize import least_squares
+
+        sol = least_squares(self.residual, [start], jac=lambda x: self.residual_and_jacobian(x)[1], xtol=1e-15, ftol=1e-15)
+        chi2 = float(sol.fun @ sol.fun) / (sol.fun.size - 1)
+        return sol.x, chi2, np.sqrt(np.diag(np.linalg.inv(sol.jac.T @ sol.jac)) * chi2)
+
+
+def _two_basins_report(flips: bool):
+    from identify.result import Result
+
+    coarse = TwoBasins(10, 0.1, flips)
+    theta, chi2, se = coarse.optimum(0.0)  # the fit's grid leads to the basin near 0
+    J = coarse.residual_and_jacobian(theta)[1]
+    result = Result(
+        labels=["x"], values=coarse.reported(theta), standard_errors={"x": float(se[0])}, correlation=[], sigma=[1.0, 1.0],
+        loss=chi2, rms=[],
+    )  # fmt: skip
+    start = np.array([1.0])  # where the fit began: the other basin
+    return coarse, se, discretisation.report(coarse, theta, J, result, max_levels=2, rivals=[start])
+
+
+def test_a_start_in_a_basin_that_a_finer_grid_prefers_takes_the_answer_over():
+    """The fit's grid prefers the wrong basin; on the finest grid the start's basin fits better:
+    the answer is that basin's, its time error measured on coarser grids and extrapolated, and
+    it lies within that error of the dt -> 0 optimum (x = 1), 100 standard errors from the
+    basin the fit's grid chose."""
+    coarse, se, rep = _two_basins_report(flips=True)
+    whats = [r["refit"] for r in rep.refinements]
+    assert whats[-4:] == ["rival", "rival", "time", "time"], whats
+    assert [r["dt"] for r in rep.refinements[-3:]] == [0.1, 0.05, 0.025]
+    assert "fits better" in rep.message and rep.model["extrapolated_from_dt"] == [0.05, 0.025]
+    got, err = rep.values["x"], rep.discretisation_errors["x"]
+    assert abs(got - 1.0) <= err + 0.05 * se[0], ((got - 1.0) / se[0], err / se[0])
+    assert abs(rep.refinements[-5]["values"]["x"] - 1.0) > 0.9  # the chain's own answer: the other basin
+
+
+def test_a_start_whose_basin_fits_worse_on_the_finest_grid_leaves_the_answer():
+    """The start's basin is worse on every grid: its optimum on the finest grid is listed as a
+    rival, and the values are the chain's (the basin near 0)."""
+    _, se, rep = _two_basins_report(flips=False)
+    whats = [r["refit"] for r in rep.refinements]
+    assert whats[-1] == "rival" and whats.count("rival") == 1, whats
+    assert abs(rep.values["x"]) < 0.01 and "fits better" not in rep.message and "as well" not in rep.message
