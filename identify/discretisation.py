@@ -50,15 +50,24 @@ recording; a later one starts where the chain's order predicts the optimum (the 
 shrunk by 2**order) and fits the whole recording at once, falling back to the windows from the
 coarser optimum if that fails. The held Jacobian's fixed point (J_held^T r = 0) is the finer
 grid's optimum only where the two grids' Jacobians agree; where a finer dt moves the phase of a
-long recording's modes they do not, and a move is then known only to about that difference (on
-`triskele_push_release_r1` at 20 nodes, dt 0.25 ms: 0.9 standard errors from the optimum that
-Levenberg-Marquardt with that grid's own Jacobians reaches from the chord's answer). Refits with
-each grid's own Jacobians are not the cure there: that recording's loss has two basins of nearly
-equal cost (0.3 apart at dt 0.25 ms) whose lengths differ by 300 um, and at 20 nodes, dt 0.5 ms
-an exact refit leaves the fit's basin for the other (which holds no truth: it ends 350 um, six
-times the fit's standard error, off); the held Jacobian keeps the chain in the fit's. A refit
-that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it is
-reported as failed and its values are not used.
+long recording's modes they do not, and a move is then known only to about that difference. A
+refit that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it
+is reported as failed and its values are not used.
+
+**Rival basins.** The fit's grid can prefer another basin of the loss than finer grids do, and
+the chains, each refit starting from the coarser answer, then converge cleanly to the wrong one.
+On `triskele_push_release_r1` (truth simulated 40x finer in time) the start put the lengths 12 um
+from the truth; the fit's grid (10 nodes, dt 0.5 ms) walked 360 um away to a basin whose time
+moves (11.9, 2.8, 0.58 SE down to dt 62.5 us) shrink at order 2.1-2.3, and answered 13 SE from
+the truth; yet on the finest grid the truth, push and camera fitted, had a loss 4.5 below that
+answer's (at dt 0.25 ms, 23 above), with a barrier between (the loss 120 higher a fifth of the
+way across). So after the chains the start (where `fit.modal_start` put the measured values,
+with the answer's push and camera) contests the answer on the finest grid when it lies more than
+``RIVAL_SE`` standard errors away and, push and camera refitted, within ``WORSE`` times the
+answer's loss: it is refitted there with the fit's model's Jacobian at it held, through the
+windows. An optimum whose loss is lower by more than ``CLOSE`` takes the answer over, its time
+error measured by refits of its own at 2 and 4 times the finest dt (extrapolated like a chain's);
+one within ``CLOSE`` is reported as a second optimum the recording cannot tell apart.
 """
 
 from __future__ import annotations
@@ -274,7 +283,9 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
     t0 = time.perf_counter()
     fine = last.problem
     say(f"the start, {far:.3g} standard errors from the answer: refit with {last.nodes} nodes, dt {last.dt:.3g} s ...")
-    start, cost = fine.fit_linear(start)
+    # the start's measured values with the answer's push and camera, which a linear fit then adjusts
+    # (from the sidecar's push and the first frame, the start's were 300x the answer's loss on r1)
+    start, cost = fine.fit_linear(np.where(problem.measured, start, last.theta))
     answer = 0.5 * last.chi2 * m
     if not cost <= WORSE * answer:
         say(f"  its loss {cost:.6g} against the answer's {answer:.6g}: not a rival")
