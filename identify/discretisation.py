@@ -68,6 +68,8 @@ answer's loss: it is refitted there with the fit's model's Jacobian at it held, 
 windows. An optimum whose loss is lower by more than ``CLOSE`` takes the answer over, its time
 error measured by refits of its own at 2 and 4 times the finest dt (extrapolated like a chain's);
 one within ``CLOSE`` is reported as a second optimum the recording cannot tell apart.
+On r1 the start's optimum on the finest grid had a loss 5.5 below the answer's and lies 0.13-0.28
+standard errors from the truth's lengths (tau 0.67), its own time moves at most 0.57 SE.
 """
 
 from __future__ import annotations
