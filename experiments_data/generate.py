@@ -14,8 +14,8 @@ names ending ``_r1``, ``_r2``) is not the fit's own model: its truths are drawn,
 the prior a fit is promised to hold in (each length within 2 mm of nominal, the damping time
 anywhere in a decade, the push within 10 % of the recorded one) and simulated on a grid 3x finer
 in space and 40x (Triskele push-release) or 100x (cantilever) in time than the sidecar's, or
-extrapolated to dt 0 from 5x and 10x (Triskele actuator step, `EXTRAPOLATED`) (``[provenance] truth_nodes``, ``truth_dt``), so a fit
-meets the discretisation error it would meet on a real log. The time step is what makes the
+extrapolated to dt 0 from 5x and 10x (Triskele actuator step, `EXTRAPOLATED`) (the sidecars'
+``[provenance]`` says which), so a fit meets the discretisation error it would meet on a real log. The time step is what makes the
 truth's grid converged at the noise: at 5x in time the filmed pose was off the converged motion
 by 17 um on the cantilever (noise 2 um) and 2.9 nm on the Triskele push (noise 2 nm), which put
 the fit's answer, extrapolated to dt 0, 38 standard errors from the cantilever's drawn length;

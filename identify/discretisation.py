@@ -69,7 +69,7 @@ windows. An optimum whose loss is lower by more than ``CLOSE`` takes the answer 
 error measured by refits of its own at 2 and 4 times the finest dt (extrapolated like a chain's);
 one within ``CLOSE`` is reported as a second optimum the recording cannot tell apart.
 On r1 the start's optimum on the finest grid had a loss 5.5 below the answer's and lies 0.13-0.28
-standard errors from the truth's lengths (tau 0.67), its own time moves at most 0.57 SE.
+standard errors from the truth's lengths (tau 0.67 SE), its own time moves at most 0.57 SE.
 """
 
 from __future__ import annotations
@@ -190,7 +190,7 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
 
 def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
     """(the `Level` list: the tolerance refit first, then the space refits, then the time
-    refits; the failures: a refit that failed ends the list) for the fit ``problem`` at its
+    refits; the notes: a refit that failed ends the list) for the fit ``problem`` at its
     optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
     chi-square ``chi2``, its noise levels). Space: twice the nodes at the fit's dt, while the
     move of a measured parameter exceeds a third of a standard error, up to ``max_levels``
@@ -202,13 +202,12 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
-    levels, failed = [], []
+    levels, notes = [], []
     say = progress if progress is not None else (lambda msg: None)
 
     def refit(what, n, h, base, windows, parent, predicted=None):
         t0 = time.perf_counter()
-        if progress is not None:
-            progress(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
+        say(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
         # from the predicted optimum over the whole recording at once; else (or if that fails)
         # from the coarser optimum through the windows
@@ -220,7 +219,7 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
                 th, cost, it = chord_refit(fine, start, J, ends)
             except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
                 if last:
-                    failed.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
+                    notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
                     return None
                 continue
             iterations += it
@@ -228,20 +227,19 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             if chi2_here <= WORSE * chi2:
                 break
             if last:  # a finer model fits worse than the coarse one: a wrong minimum
-                failed.append(
+                notes.append(
                     f"the refit with {n} nodes, dt {h:.3g} s reached a reduced chi-square of {chi2_here:.3g} against the fit's "
                     f"{chi2:.3g}: it did not find that model's optimum, so its {what} error is not measured"
                 )
                 return None
         move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
         levels.append(Level(what, n, h, tl, th, move, chi2_here, iterations, time.perf_counter() - t0, fine, parent))
-        if progress is not None:
-            progress(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
+        say(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
         return levels[-1]
 
     base = np.asarray(theta, float)
     if refit("tolerance", nodes, dt, base, (None,), None) is None:
-        return levels, failed
+        return levels, notes
     n, h, parent = nodes, dt, None  # the grid refinements start from the fit's own optimum
     for what in ("space", "time"):
         step, prev = None, None  # the chain's last move (theta) and its last level
@@ -249,7 +247,7 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             predicted = None if step is None else base + step / 2 ** ORDER[what]
             lv = refit(what, *((2 * n, h) if what == "space" else (n, h / 2)), base, window_ends, parent, predicted)
             if lv is None:
-                return levels, failed
+                return levels, notes
             settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
             if what == "time" and prev is not None:
                 usable, error = extrapolation(prev, lv, problem.measured)
@@ -261,9 +259,9 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             if settled:
                 break
     for start in rivals:
-        if _contest(problem, levels, failed, np.asarray(start, float), se_theta, chi2, m, say, window_ends):
+        if _contest(problem, levels, notes, np.asarray(start, float), se_theta, chi2, m, say, window_ends):
             break
-    return levels, failed
+    return levels, notes
 
 
 def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends) -> bool:
