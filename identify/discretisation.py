@@ -41,16 +41,22 @@ time moves were 299, 76 and 19 standard errors down to dt 0.125 ms, at observed 
 the finest grid's length lies 4.3 standard errors from the truth, the extrapolation 2.1, with an
 extrapolation error of 0.01; reaching a third of one by halving alone would take dt near 10 us.
 
-Each refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the Jacobian of
-the coarse model, each step taken only where it lowers the cost): a finer grid moves the
-residuals by far more than their derivatives, so an iteration costs one forward rollout on the
-finer grid and no tangents. The first refit of each chain runs over the fit's windows of
-growing length, since the coarse answer can be cycles of phase off the finer grid's over a whole
-recording; a later one starts where the chain's order predicts the optimum (the last move
-shrunk by 2**order) and fits the whole recording at once, falling back to the windows from the
-coarser optimum if that fails. The held Jacobian's fixed point (J_held^T r = 0) is the finer
-grid's optimum only where the two grids' Jacobians agree; where a finer dt moves the phase of a
-long recording's modes they do not, and a move is then known only to about that difference. A
+Through the fit's windows of growing length (the first refit of each chain: the coarse answer
+can be cycles of phase off the finer grid's over a whole recording) a refit holds the fit's
+Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian, each step taken
+only where it lowers the cost), so an iteration costs one rollout of the window and no tangents.
+Over the whole recording it takes the finer model's own Jacobian, holds it, and takes it again
+at the answer, up to ``REFRESH`` times, until its Gauss-Newton decrement puts the parameters
+within ``STILL`` standard errors of the optimum. The coarse Jacobian held to the end would stop
+at its own fixed point (J_held^T r = 0), which is the finer grid's optimum only where the two
+grids' Jacobians agree, and where a finer dt moves the phase of a long recording's modes they
+do not: on `triskele_push_release_r1` from dt 0.25 to 0.125 ms (20 nodes) the chord crawled
+through 40 iterations (81 rollouts, 254 s) to a point the finer model's Jacobian still put 0.47
+standard errors from its optimum (decrement 0.73), where its first Jacobian (16 rollouts' time)
+and 5 iterations (18 rollouts) came to 0.19 (decrement 0.078) at a loss 0.66 lower. A later
+refit of a chain starts where the chain's order predicts the optimum (the last move shrunk by
+2**order) and fits the whole recording at once, falling back to the windows from the coarser
+optimum if that fails. A
 refit that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it
 is reported as failed and its values are not used.
 
@@ -64,8 +70,8 @@ answer's (at dt 0.25 ms, 23 above), with a barrier between (the loss 120 higher 
 way across). So after the chains the start (where `fit.modal_start` put the measured values,
 with the answer's push and camera) contests the answer on the finest grid when it lies more than
 ``RIVAL_SE`` standard errors away and, push and camera refitted, within ``WORSE`` times the
-answer's loss: it is refitted there with the fit's model's Jacobian at it held, through the
-windows. An optimum whose loss is lower by more than ``CLOSE`` takes the answer over, its time
+answer's loss: it is refitted there like a chain's first refit, holding the fit's model's
+Jacobian at the start through the windows. An optimum whose loss is lower by more than ``CLOSE`` takes the answer over, its time
 error measured by refits of its own at 2 and 4 times the finest dt (extrapolated like a chain's);
 one within ``CLOSE`` is reported as a second optimum the recording cannot tell apart.
 On r1 the start's optimum on the finest grid had a loss 5.5 below the answer's and lies 0.13-0.28
@@ -79,11 +85,12 @@ import time
 
 import numpy as np
 
-from .least_squares import FitError, levenberg_marquardt, standard_errors_theta
+from .least_squares import FitError, decrement, levenberg_marquardt, standard_errors_theta
 
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
 CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
+REFRESH = 2  # the refined model's Jacobians a refit takes over the whole recording, at most
 STILL = 0.05  # a refit ends when its linearisation puts the parameters this many standard errors from its optimum
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
@@ -128,6 +135,7 @@ class Level:
     wall_s: float
     problem: object = dataclasses.field(repr=False, compare=False, default=None)
     parent: int | None = None
+    jacobians: int = 0
 
     def to_json(self) -> dict:
         return dict(
@@ -138,6 +146,7 @@ class Level:
             largest_move_se=float(np.max(np.abs(self.move_se))),
             reduced_chi2=self.chi2,
             chord_iterations=self.iterations,
+            jacobians=self.jacobians,
             wall_s=round(self.wall_s, 1),
             values={} if self.problem is None else _plain(self.problem.reported(self.theta)),
         )
@@ -152,40 +161,62 @@ def _plain(values: dict) -> dict:
     return out
 
 
-def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER):
-    """(theta, cost, iterations) minimising ``problem``'s residuals over the whole recording
-    from ``theta`` with the Jacobian ``J`` held (of another discretisation of the same problem):
-    Levenberg-Marquardt steps with that Jacobian, each taken only where it lowers the cost, over
-    windows ending at ``window_ends`` (the fit's continuation: a coarse grid's answer can be
-    cycles of phase off over a long recording, as the Triskele's 150 Hz modes are at dt 0.5 ms),
-    each from the previous one's answer. The whole recording's refit stops when the held
-    Jacobian's Gauss-Newton decrement puts the parameters within ``STILL`` standard errors of
-    its fixed point (`levenberg_marquardt`'s test).
-    Raises `FitError` where the refined model's rollout fails."""
+def _held(problem, theta, J, t_end, max_iter, ftol):
+    """(theta, residuals, iterations) of Levenberg-Marquardt on ``problem``'s residuals over the
+    frames up to ``t_end`` from ``theta``, with the Jacobian ``J`` held (each step taken only
+    where it lowers the cost)."""
+    rows = np.repeat(np.asarray(problem.window(t_end)[0]) > 0, 3)
+    held, last = J * rows[:, None], {}
+
+    def residual(x):
+        x = np.asarray(x, float)
+        if last.get("x") is None or not np.array_equal(last["x"], x):  # the accepted trial's rollout is reused
+            last["x"], last["r"] = x, np.asarray(problem.residual(x, t_end))
+        return last["r"]
+
+    theta, _, r, it, _, _ = levenberg_marquardt(
+        residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step
+    )
+    return theta, r, it
+
+
+def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH):
+    """(theta, cost, iterations, Jacobians) minimising ``problem``'s residuals over the whole
+    recording from ``theta``. Over the windows ending at ``window_ends`` before the last (the
+    fit's continuation: a coarse grid's answer can be cycles of phase off over a long recording,
+    as the Triskele's 150 Hz modes are at dt 0.5 ms), each from the previous one's answer, the
+    Jacobian ``J`` (of another discretisation of the same problem) is held. Over the whole
+    recording the refined model's own Jacobian is taken and held while its Gauss-Newton decrement
+    puts the parameters more than ``STILL`` standard errors from its fixed point, up to
+    ``refresh`` times (0: ``J`` held there too). Raises `FitError` where the refined model's
+    rollout fails."""
     theta = np.asarray(theta, float)
-    total = 0
-    for t_end in window_ends:
-        rows = np.repeat(np.asarray(problem.window(t_end)[0]) > 0, 3)
-        held = J * rows[:, None]
-        last = {}
+    total, jacobians = 0, 0
 
-        def residual(x, t_end=t_end, last=last):
-            x = np.asarray(x, float)
-            if last.get("x") is None or not np.array_equal(last["x"], x):  # the accepted trial's rollout is reused
-                last["x"], last["r"] = x, np.asarray(problem.residual(x, t_end))
-            return last["r"]
-
-        r0 = residual(theta)
-        if not np.all(np.isfinite(r0)):
+    def finite(r):
+        if not np.all(np.isfinite(r)):
             raise FitError(
                 f"the model with {problem.scene.solver.nodes} nodes, dt {float(problem.scene.solver.dt):.3g} s does not converge"
             )
-        ftol = 1e-6 if t_end is not None else 0.5 * STILL**2 / max(0.5 * float(r0 @ r0), 1e-300)
-        theta, _, r, it, _, _ = levenberg_marquardt(
-            residual, lambda x, residual=residual: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step
-        )
+
+    for t_end in window_ends[:-1]:
+        finite(problem.residual(theta, t_end))
+        theta, r, it = _held(problem, theta, J, t_end, max_iter, 1e-6)
         total += it
-    return theta, 0.5 * float(r @ r), total
+    r = np.asarray(problem.residual(theta))
+    finite(r)
+    still = 0.5 * STILL**2  # the decrement of a parameter STILL standard errors off a quadratic optimum
+    if refresh == 0:
+        theta, r, it = _held(problem, theta, J, None, max_iter, still / max(0.5 * float(r @ r), 1e-300))
+        total += it
+    for _ in range(refresh):
+        r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
+        jacobians += 1
+        if decrement(J, r) < still:
+            break
+        theta, r, it = _held(problem, theta, J, None, max_iter, still / max(0.5 * float(r @ r), 1e-300))
+        total += it
+    return theta, 0.5 * float(r @ r), total, jacobians
 
 
 def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
@@ -212,17 +243,17 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
         # from the predicted optimum over the whole recording at once; else (or if that fails)
         # from the coarser optimum through the windows
         tries = ([(predicted, (None,))] if predicted is not None else []) + [(base, windows)]
-        iterations = 0
+        iterations = jacobians = 0
         for k, (start, ends) in enumerate(tries):
             last = k == len(tries) - 1
             try:
-                th, cost, it = chord_refit(fine, start, J, ends)
+                th, cost, it, jac = chord_refit(fine, start, J, ends)
             except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
                 if last:
                     notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
                     return None
                 continue
-            iterations += it
+            iterations, jacobians = iterations + it, jacobians + jac
             chi2_here = 2 * cost / max(m, 1)
             if chi2_here <= WORSE * chi2:
                 break
@@ -233,7 +264,7 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
                 )
                 return None
         move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
-        levels.append(Level(what, n, h, tl, th, move, chi2_here, iterations, time.perf_counter() - t0, fine, parent))
+        levels.append(Level(what, n, h, tl, th, move, chi2_here, iterations, time.perf_counter() - t0, fine, parent, jacobians))
         say(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
         return levels[-1]
 
@@ -292,13 +323,13 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
         return False
     held = np.asarray(problem.residual_and_jacobian(start)[1])
     try:
-        th, cost, it = chord_refit(fine, start, held, window_ends)
+        th, cost, it, jac = chord_refit(fine, start, held, window_ends)
     except FitError as e:
         notes.append(f"the refit from the start on the finest grid failed ({e})")
         return False
     levels.append(
         Level("rival", last.nodes, last.dt, last.tol, th, (th - last.theta) / (se_theta * scale), 2 * cost / m, it,
-              time.perf_counter() - t0, fine, len(levels) - 1)
+              time.perf_counter() - t0, fine, len(levels) - 1, jac)
     )  # fmt: skip
     say(f"  its optimum's loss {cost:.6g} against the answer's {answer:.6g}")
     moved = problem.labels()[int(np.argmax(np.where(problem.measured, np.abs(levels[-1].move_se), 0.0)))]
@@ -310,14 +341,14 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
                 "does not tell the two apart"
             )
         return False
-    chain = [(th, cost, it, fine, time.perf_counter() - t0)]
+    chain = [(th, cost, it, jac, fine, time.perf_counter() - t0)]
     for k in (1, 2):  # the rival's time error: its optimum on coarser grids
         t0 = time.perf_counter()
         h = last.dt * 2**k
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, cost, it = chord_refit(coarser, chain[-1][0], held, (None,))
+            th, cost, it, jac = chord_refit(coarser, chain[-1][0], held, (None,))
         except FitError as e:
             notes.append(
                 f"the better basin's refit with dt {h:.3g} s failed ({e}): its time error is not measured, the answer stands"
@@ -329,13 +360,13 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
                 "not found on that grid, its time error is not measured, the answer stands"
             )
             return False
-        chain.append((th, cost, it, coarser, time.perf_counter() - t0))
-    (v1, c1, i1, p1, w1), (v2, c2, i2, p2, w2), (v4, c4, i4, p4, w4) = chain
+        chain.append((th, cost, it, jac, coarser, time.perf_counter() - t0))
+    (v1, c1, _, _, p1, w1), (v2, c2, i2, j2, p2, w2), (v4, c4, i4, j4, p4, w4) = chain
     se = lambda c: se_theta * np.sqrt(2 * c / m / chi2)  # noqa: E731
     base = len(levels)
     levels += [
-        Level("rival", last.nodes, 4 * last.dt, last.tol, v4, np.zeros_like(v4), 2 * c4 / m, i4, w4, p4, None),
-        Level("time", last.nodes, 2 * last.dt, last.tol, v2, (v2 - v4) / se(c2), 2 * c2 / m, i2, w2, p2, base),
+        Level("rival", last.nodes, 4 * last.dt, last.tol, v4, np.zeros_like(v4), 2 * c4 / m, i4, w4, p4, None, j4),
+        Level("time", last.nodes, 2 * last.dt, last.tol, v2, (v2 - v4) / se(c2), 2 * c2 / m, i2, w2, p2, base, j2),
         Level("time", last.nodes, last.dt, last.tol, v1, (v1 - v2) / se(c1), 2 * c1 / m, 0, w1, p1, base + 1),
     ]
     notes.append(
