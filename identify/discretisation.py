@@ -45,19 +45,20 @@ Through the fit's windows of growing length (the first refit of each chain: the 
 can be cycles of phase off the finer grid's over a whole recording) a refit holds the fit's
 Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian, each step taken
 only where it lowers the cost), so an iteration costs one rollout of the window and no tangents.
-Over the whole recording it takes the finer model's own Jacobian, holds it, and takes it again
-at the answer, up to ``REFRESH`` times, until its Gauss-Newton decrement puts the parameters
-within ``STILL`` standard errors of the optimum. The coarse Jacobian held to the end would stop
-at its own fixed point (J_held^T r = 0), which is the finer grid's optimum only where the two
-grids' Jacobians agree, and where a finer dt moves the phase of a long recording's modes they
-do not: on `triskele_push_release_r1` from dt 0.25 to 0.125 ms (20 nodes) the chord crawled
-through 40 iterations (81 rollouts, 254 s) to a point the finer model's Jacobian still put 0.47
-standard errors from its optimum (decrement 0.73), where its first Jacobian (16 rollouts' time)
-and 5 iterations (18 rollouts) came to 0.19 (decrement 0.078) at a loss 0.66 lower. A later
-refit of a chain starts where the chain's order predicts the optimum (the last move shrunk by
-2**order) and fits the whole recording at once, falling back to the windows from the coarser
-optimum if that fails. A
-refit that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it
+Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, then takes the
+finer model's own where they stopped: the refit ends there if its Gauss-Newton decrement puts
+the parameters within ``STILL`` standard errors of the optimum, else goes on holding it. The
+coarse Jacobian held to the end would stop at its own fixed point (J_held^T r = 0), which is
+the finer grid's optimum only where the two grids' Jacobians agree, and where a finer dt moves
+the phase of a long recording's modes they do not: on `triskele_push_release_r1` from dt 0.25
+to 0.125 ms (20 nodes) the held chord crawled through 40 iterations (81 rollouts, 254 s) to a
+point the finer model's Jacobian put 0.47 standard errors from its optimum (decrement 0.73);
+5 held iterations, the finer Jacobian (about 12 rollouts' time) and 4 more came to within 0.055
+(decrement 0.0032) in 121 s, at a loss 0.74 lower. On the fit's own grid (the tolerance refit)
+the fit's Jacobian is the model's and is held throughout. A later refit of a chain starts where
+the chain's order predicts the optimum (the last move shrunk by 2**order) and fits the whole
+recording at once, falling back to the windows from the coarser optimum if that fails. A refit
+that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it
 is reported as failed and its values are not used.
 
 **Rival basins.** The fit's grid can prefer another basin of the loss than finer grids do, and
@@ -90,7 +91,8 @@ from .least_squares import FitError, decrement, levenberg_marquardt, standard_er
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
 CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
-REFRESH = 2  # the refined model's Jacobians a refit takes over the whole recording, at most
+HELD_ITER = 5  # iterations over the whole recording with the fit's Jacobian, before the refined model's own
+REFRESH = 1  # the refined model's Jacobians a refit takes over the whole recording, at most
 STILL = 0.05  # a refit ends when its linearisation puts the parameters this many standard errors from its optimum
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
@@ -185,11 +187,11 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     recording from ``theta``. Over the windows ending at ``window_ends`` before the last (the
     fit's continuation: a coarse grid's answer can be cycles of phase off over a long recording,
     as the Triskele's 150 Hz modes are at dt 0.5 ms), each from the previous one's answer, the
-    Jacobian ``J`` (of another discretisation of the same problem) is held. Over the whole
-    recording the refined model's own Jacobian is taken and held while its Gauss-Newton decrement
-    puts the parameters more than ``STILL`` standard errors from its fixed point, up to
-    ``refresh`` times (0: ``J`` held there too). Raises `FitError` where the refined model's
-    rollout fails."""
+    Jacobian ``J`` (of another discretisation of the same problem) is held; over the whole
+    recording too, for ``HELD_ITER`` iterations. Then the refined model's own Jacobian is taken
+    and held, while its Gauss-Newton decrement puts the parameters more than ``STILL`` standard
+    errors from the optimum, up to ``refresh`` times (0: ``J`` held to the end). Raises
+    `FitError` where the refined model's rollout fails."""
     theta = np.asarray(theta, float)
     total, jacobians = 0, 0
 
@@ -206,9 +208,9 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     r = np.asarray(problem.residual(theta))
     finite(r)
     still = 0.5 * STILL**2  # the decrement of a parameter STILL standard errors off a quadratic optimum
-    if refresh == 0:
-        theta, r, it = _held(problem, theta, J, None, max_iter, still / max(0.5 * float(r @ r), 1e-300))
-        total += it
+    # the held Jacobian first (cheap iterations, where it is close), then the model's own
+    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still / max(0.5 * float(r @ r), 1e-300))
+    total += it
     for _ in range(refresh):
         r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
         jacobians += 1
@@ -247,7 +249,8 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
         for k, (start, ends) in enumerate(tries):
             last = k == len(tries) - 1
             try:
-                th, cost, it, jac = chord_refit(fine, start, J, ends)
+                # on the fit's own grid (a tighter tolerance) the fit's Jacobian is the model's
+                th, cost, it, jac = chord_refit(fine, start, J, ends, refresh=0 if what == "tolerance" else REFRESH)
             except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
                 if last:
                     notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
