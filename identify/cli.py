@@ -182,12 +182,24 @@ def run(args) -> dict:
         print(f"{name:>15} = {format_value(name, v, result.standard_errors[name], result.discretisation_errors.get(name))}")
     if result.model:
         m = result.model
-        if "extrapolated_from_dt" in m:
-            a, b = m["extrapolated_from_dt"]
+        if "extrapolated_from_dt" in m or "extrapolated_from_nodes" in m:
+            a, b = m.get("extrapolated_from_dt", (m["dt"], m["dt"]))
+            time_from = (
+                f"extrapolated to dt 0 (Richardson, BDF-alpha's order 2) from the models with {m['nodes']} nodes, dt {a:.3g} and "
+                f"{b:.3g} s"
+                if "extrapolated_from_dt" in m
+                else f"from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s"
+            )
+            space = ""
+            if "extrapolated_from_nodes" in m:
+                n1, n2 = m["extrapolated_from_nodes"]
+                space = (
+                    f", plus their space error extrapolated to infinitely many nodes (Richardson, RK4's order 4) from the "
+                    f"moves to {n1} and {n2} nodes"
+                )
             print(
-                f"values extrapolated to dt 0 (Richardson, BDF-alpha's order 2) from the models with {m['nodes']} nodes, "
-                f"dt {a:.3g} and {b:.3g} s, Newton tolerance {m['tol']:.0e}; ± statistical (noise), ± discretisation "
-                "(the last space refinement's move and the extrapolation's uncertainty, in quadrature)"
+                f"values {time_from}{space}, Newton tolerance {m['tol']:.0e}; ± statistical (noise), ± discretisation (the "
+                "last space and time moves or their extrapolations' uncertainties, in quadrature)"
             )
         else:
             print(
