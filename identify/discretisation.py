@@ -83,9 +83,10 @@ way across). So after the chains the start (where `fit.modal_start` put the meas
 with the answer's push and camera) contests the answer on the finest grid when it lies more than
 ``RIVAL_SE`` standard errors away and, push and camera refitted, within ``WORSE`` times the
 answer's loss: it is refitted there like a chain's first refit, holding the fit's model's
-Jacobian at the start through the windows. An optimum whose loss is lower by more than ``CLOSE`` takes the answer over, its time
-error measured by refits of its own at 2 and 4 times the finest dt (extrapolated like a chain's);
-one within ``CLOSE`` is reported as a second optimum the recording cannot tell apart.
+Jacobian at the start through the windows. An optimum whose loss is lower by more than
+``CLOSE`` takes the answer over, its time error measured by refits of its own at 2 and 4 times
+the finest dt (extrapolated like a chain's); one within ``CLOSE`` is reported as a second
+optimum the recording cannot tell apart.
 On r1 the start's optimum on the finest grid had a loss 5.5 below the answer's and lies 0.13-0.28
 standard errors from the truth's lengths (tau 0.67 SE), its own time moves at most 0.57 SE.
 """
@@ -301,9 +302,8 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
                 usable, error = extrapolation(prev, lv, problem.measured)
                 settled = settled or (usable and np.max(error[problem.measured]) <= THIRD)
             prev = lv
-            if (
-                settled and what == "space"
-            ):  # the coarser grid's space error is this move (or its extrapolation): time refines there
+            # the coarser grid's space error is this move (or its extrapolation): time refines there
+            if settled and what == "space":
                 break
             n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
