@@ -236,6 +236,28 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     return theta, 0.5 * float(r @ r), total, jacobians
 
 
+def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
+    """(theta, cost, iterations, Jacobians) of the first `chord_refit` of ``fine`` from
+    ``tries`` ((start, window ends), in order) that ends within ``WORSE`` times the fit's
+    reduced chi-square ``chi2`` (``m`` degrees of freedom); raises `FitError` saying why the
+    last did not (a finer model that fits far worse than the coarse one: a wrong minimum)."""
+    iterations = jacobians = 0
+    for start, ends in tries:
+        try:
+            th, cost, it, jac = chord_refit(fine, start, J, ends, refresh=refresh)
+        except FitError as e:
+            why = f"failed ({e})"
+            continue
+        iterations, jacobians = iterations + it, jacobians + jac
+        if 2 * cost / max(m, 1) <= WORSE * chi2:
+            return th, cost, iterations, jacobians
+        why = (
+            f"reached a reduced chi-square of {2 * cost / max(m, 1):.3g} against the fit's {chi2:.3g}: it did not find that "
+            "model's optimum"
+        )
+    raise FitError(why)
+
+
 def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
     """(the `Level` list: the tolerance refit first, then the space refits, then the time
     refits; the notes: a refit that failed ends the list) for the fit ``problem`` at its
@@ -258,29 +280,15 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
         say(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
         # from the predicted optimum over the whole recording at once; else (or if that fails)
-        # from the coarser optimum through the windows
+        # from the coarser optimum through the windows; on the fit's own grid (a tighter
+        # tolerance) the fit's Jacobian is the model's
         tries = ([(predicted, (None,))] if predicted is not None else []) + [(base, windows)]
-        iterations = jacobians = 0
-        for k, (start, ends) in enumerate(tries):
-            last = k == len(tries) - 1
-            try:
-                # on the fit's own grid (a tighter tolerance) the fit's Jacobian is the model's
-                th, cost, it, jac = chord_refit(fine, start, J, ends, refresh=0 if what == "tolerance" else REFRESH)
-            except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
-                if last:
-                    notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} failed ({e})")
-                    return None
-                continue
-            iterations, jacobians = iterations + it, jacobians + jac
-            chi2_here = 2 * cost / max(m, 1)
-            if chi2_here <= WORSE * chi2:
-                break
-            if last:  # a finer model fits worse than the coarse one: a wrong minimum
-                notes.append(
-                    f"the refit with {n} nodes, dt {h:.3g} s reached a reduced chi-square of {chi2_here:.3g} against the fit's "
-                    f"{chi2:.3g}: it did not find that model's optimum, so its {what} error is not measured"
-                )
-                return None
+        try:
+            th, cost, iterations, jacobians = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
+        except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
+            notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} {e}, so its {what} error is not measured")
+            return None
+        chi2_here = 2 * cost / max(m, 1)
         move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
         levels.append(Level(what, n, h, tl, th, move, chi2_here, iterations, time.perf_counter() - t0, fine, parent, jacobians))
         say(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
@@ -367,17 +375,9 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, cost, it, jac = chord_refit(coarser, chain[-1][0], held, (None,))
+            th, cost, it, jac = _attempt(coarser, [(chain[-1][0], (None,))], held, m, chi2)
         except FitError as e:
-            notes.append(
-                f"the better basin's refit with dt {h:.3g} s failed ({e}): its time error is not measured, the answer stands"
-            )
-            return False
-        if 2 * cost / m > WORSE * chi2:
-            notes.append(
-                f"the better basin's refit with dt {h:.3g} s reached a reduced chi-square of {2 * cost / m:.3g}: the basin is "
-                "not found on that grid, its time error is not measured, the answer stands"
-            )
+            notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False
         chain.append((th, cost, it, jac, coarser, time.perf_counter() - t0))
     (v1, c1, _, _, p1, w1), (v2, c2, i2, j2, p2, w2), (v4, c4, i4, j4, p4, w4) = chain
