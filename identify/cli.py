@@ -183,10 +183,9 @@ def run(args) -> dict:
     if result.model:
         m = result.model
         if "extrapolated_from_dt" in m or "extrapolated_from_nodes" in m:
-            a, b = m.get("extrapolated_from_dt", (m["dt"], m["dt"]))
             time_from = (
-                f"extrapolated to dt 0 (Richardson, BDF-alpha's order 2) from the models with {m['nodes']} nodes, dt {a:.3g} and "
-                f"{b:.3g} s"
+                f"extrapolated to dt 0 (Richardson, BDF-alpha's order 2) from the models with {m['nodes']} nodes, dt "
+                f"{m['extrapolated_from_dt'][0]:.3g} and {m['extrapolated_from_dt'][1]:.3g} s"
                 if "extrapolated_from_dt" in m
                 else f"from the model with {m['nodes']} nodes, dt {m['dt']:.3g} s"
             )

@@ -178,19 +178,28 @@ def _plain(values: dict) -> dict:
     return out
 
 
-def _held(problem, theta, J, t_end, max_iter, ftol):
+def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
     """(theta, residuals, iterations) of Levenberg-Marquardt on ``problem``'s residuals over the
-    frames up to ``t_end`` from ``theta``, with the Jacobian ``J`` held (each step taken only
-    where it lowers the cost)."""
+    frames up to ``t_end`` from ``theta`` (where they are ``r0``, if known), with the Jacobian
+    ``J`` held (each step taken only where it lowers the cost), until the Gauss-Newton decrement
+    is below ``gain`` (None: a millionth of the cost). Raises `FitError` where the rollout at
+    ``theta`` fails."""
     rows = np.repeat(np.asarray(problem.window(t_end)[0]) > 0, 3)
-    held, last = J * rows[:, None], {}
+    held = J * rows[:, None]
+    theta = np.asarray(theta, float)
+    last = {"x": theta, "r": np.asarray(problem.residual(theta, t_end)) if r0 is None else np.asarray(r0)}
+    if not np.all(np.isfinite(last["r"])):
+        solver = problem.scene.solver
+        raise FitError(f"the model with {solver.nodes} nodes, dt {float(solver.dt):.3g} s does not converge")
 
     def residual(x):
         x = np.asarray(x, float)
-        if last.get("x") is None or not np.array_equal(last["x"], x):  # the accepted trial's rollout is reused
+        if not np.array_equal(last["x"], x):  # the accepted trial's rollout is reused
             last["x"], last["r"] = x, np.asarray(problem.residual(x, t_end))
         return last["r"]
 
+    cost = 0.5 * float(last["r"] @ last["r"])
+    ftol = 1e-6 if gain is None else gain / max(cost, 1e-300)
     theta, _, r, it, _, _ = levenberg_marquardt(
         residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step
     )
@@ -207,31 +216,20 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     and held, while its Gauss-Newton decrement puts the parameters more than ``STILL`` standard
     errors from the optimum, up to ``refresh`` times (0: ``J`` held to the end). Raises
     `FitError` where the refined model's rollout fails."""
-    theta = np.asarray(theta, float)
     total, jacobians = 0, 0
-
-    def finite(r):
-        if not np.all(np.isfinite(r)):
-            raise FitError(
-                f"the model with {problem.scene.solver.nodes} nodes, dt {float(problem.scene.solver.dt):.3g} s does not converge"
-            )
-
     for t_end in window_ends[:-1]:
-        finite(problem.residual(theta, t_end))
-        theta, r, it = _held(problem, theta, J, t_end, max_iter, 1e-6)
+        theta, _, it = _held(problem, theta, J, t_end, max_iter)
         total += it
-    r = np.asarray(problem.residual(theta))
-    finite(r)
     still = 0.5 * STILL**2  # the decrement of a parameter STILL standard errors off a quadratic optimum
     # the held Jacobian first (cheap iterations, where it is close), then the model's own
-    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still / max(0.5 * float(r @ r), 1e-300))
+    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still)
     total += it
     for _ in range(refresh):
         r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
         jacobians += 1
         if decrement(J, r) < still:
             break
-        theta, r, it = _held(problem, theta, J, None, max_iter, still / max(0.5 * float(r @ r), 1e-300))
+        theta, r, it = _held(problem, theta, J, None, max_iter, still, r)
         total += it
     return theta, 0.5 * float(r @ r), total, jacobians
 
@@ -435,6 +433,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         # Richardson from the last two moves: in time, to the finest dt's values; in space, where
         # time refined at the coarser nodes of the last space move, as a correction to them
         values_from_coarser = what == "space" and levels[chains["time"][0]].nodes < last.nodes
+        extrapolated = "extrapolated_from_dt" if what == "time" else "extrapolated_from_nodes"  # its key in `model`
         if len(idx) >= 2 and (what == "time" or values_from_coarser):
             usable, error = extrapolation(levels[idx[-2]], last, problem.measured)
             if usable:
@@ -448,13 +447,12 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                     correction = {key: m2[key] * k / (k - 1.0) for key in v2}
                 moved[what] = {key: np.abs(k * m2[key] - m1[key]) / (k - 1.0) for key in v2}
                 moves = np.where(problem.measured, error, 0.0)
-                grids = [levels[idx[-2]].dt, last.dt] if what == "time" else [levels[idx[-2]].nodes, last.nodes]
-                model["extrapolated_from_dt" if what == "time" else "extrapolated_from_nodes"] = grids
+                model[extrapolated] = [levels[idx[-2]].dt, last.dt] if what == "time" else [levels[idx[-2]].nodes, last.nodes]
         worst = float(np.max(moves))
         if worst > THIRD:
             label = problem.labels()[int(np.argmax(moves))]
             finer = "nodes" if what == "space" else "dt"
-            grids = model.get("extrapolated_from_dt" if what == "time" else "extrapolated_from_nodes")
+            grids = model.get(extrapolated)
             how = (
                 f"{what} refinement (to {last.nodes} nodes, dt {last.dt:.3g} s) still moved {label} by {worst:.2g} standard errors"
                 if grids is None
