@@ -399,6 +399,11 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
     return True
 
 
+def _sentences(parts) -> str:
+    """The non-empty ``parts`` as sentences: each ends with a full stop."""
+    return " ".join(p if p.endswith(".") else p + "." for p in (p.strip() for p in parts) if p)
+
+
 def _difference(a: dict, b: dict) -> dict:
     return {k: np.abs(np.asarray(a[k]) - np.asarray(b[k])) for k in a}
 
@@ -414,7 +419,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     levels, notes = refine(
         problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends, rivals
     )
-    message = " ".join([result.message, *notes]).strip()
+    message = _sentences([result.message, *notes])
     chains = {w: [i for i, lv in enumerate(levels) if lv.what == w] for w in ("space", "time")}
     if not all(chains.values()):  # a refinement failed: the fit's own values, no error claimed
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
@@ -473,7 +478,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                 f"[solver] {finer} in the sidecar (or more --refine levels) would settle it"
             )
     final = {key: np.asarray(v) + correction.get(key, 0.0) for key, v in final.items()}
-    message = " ".join([message, *notes]).strip()
+    message = _sentences([message, *notes])
     finest = levels[-1]
     noise = np.sqrt(finest.chi2 / result.loss)  # the residuals' scale on the last model vs the fit's
     return dataclasses.replace(
