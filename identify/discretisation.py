@@ -352,8 +352,10 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
         say(f"  its loss {cost:.6g} against the answer's {answer:.6g}: not a rival")
         return False
     held = np.asarray(problem.residual_and_jacobian(start)[1])
-    try:  # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
-        th, cost, it, jac = _attempt(fine, [(start, (None,)), (start, window_ends)], held, m, chi2)
+    # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
+    tries = [(start, (None,))] + ([(start, window_ends)] if len(window_ends) > 1 else [])
+    try:
+        th, cost, it, jac = _attempt(fine, tries, held, m, chi2)
     except FitError as e:
         notes.append(f"the refit from the start on the finest grid {e}")
         return False
