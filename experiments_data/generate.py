@@ -19,7 +19,11 @@ extrapolated to dt 0 from 5x and 10x (Triskele actuator step, `EXTRAPOLATED`) (t
 truth's grid converged at the noise: at 5x in time the filmed pose was off the converged motion
 by 17 um on the cantilever (noise 2 um) and 2.9 nm on the Triskele push (noise 2 nm), which put
 the fit's answer, extrapolated to dt 0, 38 standard errors from the cantilever's drawn length;
-at 100x and 40x the pose is within 0.03 um and 0.1 nm of twice finer steps.
+at 100x and 40x the pose is within 0.03 um and 0.1 nm of twice finer steps. In space 3x is not
+enough for the Triskele: the platform of `triskele_push_release_r2`'s truth at 30 nodes is 13 nm
+from 60 nodes (noise 2 nm; dt 125 us, first 0.3 s), and the shipped Triskele recordings predate
+the rotations' projection onto SO(3) in `pcrjax.numerics.spatial`, which moves that motion by
+18 nm at 30 nodes: they are to be regenerated on a finer grid.
 """
 
 from __future__ import annotations
