@@ -12,18 +12,15 @@ The first three are simulated with the solver settings written in the sidecar (t
 uses), so a fit can recover them to the noise level. The random-truth suite (`random_suite`,
 names ending ``_r1``, ``_r2``) is not the fit's own model: its truths are drawn, seeded, inside
 the prior a fit is promised to hold in (each length within 2 mm of nominal, the damping time
-anywhere in a decade, the push within 10 % of the recorded one) and simulated on a grid 3x finer
-in space and 40x (Triskele push-release) or 100x (cantilever) in time than the sidecar's, or
-extrapolated to dt 0 from 5x and 10x (Triskele actuator step, `EXTRAPOLATED`) (the sidecars'
-``[provenance]`` says which), so a fit meets the discretisation error it would meet on a real log. The time step is what makes the
-truth's grid converged at the noise: at 5x in time the filmed pose was off the converged motion
-by 17 um on the cantilever (noise 2 um) and 2.9 nm on the Triskele push (noise 2 nm), which put
-the fit's answer, extrapolated to dt 0, 38 standard errors from the cantilever's drawn length;
-at 100x and 40x the pose is within 0.03 um and 0.1 nm of twice finer steps. In space 3x is not
-enough for the Triskele: the platform of `triskele_push_release_r2`'s truth at 30 nodes is 13 nm
-from 60 nodes (noise 2 nm; dt 125 us, first 0.3 s), and the shipped Triskele recordings predate
-the rotations' projection onto SO(3) in `pcrjax.numerics.spatial`, which moves that motion by
-18 nm at 30 nodes: they are to be regenerated on a finer grid.
+anywhere in a decade, the push within 10 % of the recorded one) and simulated on a finer grid
+than the sidecar's (the sidecars' ``[provenance]`` says which): 9x in space on the Triskele-bot,
+3x on the cantilever, and in time extrapolated to dt 0 from 5x and 10x (Triskele,
+`EXTRAPOLATED`) or 100x outright (cantilever), so a fit meets the discretisation error it would
+meet on a real log. The truth's grid is converged at the noise: at 5x in time alone the filmed
+pose was off the converged motion by 17 um on the cantilever (noise 2 um) and 4.9 nm on the
+Triskele push (noise 2 nm), which put the fit's answer, extrapolated to dt 0, 38 standard errors
+from the cantilever's drawn length; the Triskele truths are within about 0.2 nm of the converged
+motion (`FINER` says how that was measured), the cantilever's within 0.03 um.
 """
 
 from __future__ import annotations
@@ -135,13 +132,16 @@ RECORDINGS = {
 PRIOR_LENGTH = 2e-3
 PUSH_ERROR = 0.1
 TAU_DECADE = {"triskele": (1e-4, 1e-3), "cantilever": (1e-3, 1e-2)}
-# The truth's grid: nodes x3, dt divided per experiment. The actuator steps' truths are Richardson's
-# extrapolation from dt / 5 and dt / 10 (`EXTRAPOLATED`; BDF-alpha is second order, so s(h) +
-# (s(h) - s(2h)) / 3 removes the h^2 term): brute force at dt / 40 took about 3.5 Newton iterations
-# and a fresh Jacobian every other step after the move, on 5 shooting segments per rod where dt / 5
-# has fewer, 25 steps/s in all (about 2 h a recording).
-FINER = dict(nodes=3, dt={"push_release": 40, "release": 100, "actuator_step": 10})
-EXTRAPOLATED = ("actuator_step",)  # truths extrapolated to dt 0 from dt / FINER and twice that
+# The truth's grid: nodes x9 on the Triskele-bot and x3 on the cantilever, and in time either
+# Richardson's extrapolation from dt / 5 and dt / 10 (`EXTRAPOLATED`; BDF-alpha is second order,
+# so s(h) + (s(h) - s(2h)) / 3 removes the h^2 term) or dt / 100 outright (the cantilever).
+# Measured on the platform of `triskele_push_release_r2`'s truth (first 0.1 s at 30 nodes; first
+# 0.3 s at 30, 60 and 120 nodes, dt 125 us): in time, dt / 5 alone is 4.9 nm off, and the
+# extrapolation from dt / 5 and dt / 10 is 0.04 nm from the one from dt / 20 and dt / 40, which is
+# better than dt / 40 alone (0.08 nm off); in space, RK4 is fourth order (30 to 60 nodes 13 nm,
+# 60 to 120 nodes 0.81 nm, ratio 15.7), so 90 nodes are about 0.17 nm off. The noise is 2 nm.
+FINER = dict(nodes={"triskele": 9, "cantilever": 3}, dt={"push_release": 10, "release": 100, "actuator_step": 10})
+EXTRAPOLATED = ("push_release", "actuator_step")  # truths extrapolated to dt 0 from dt / FINER and twice that
 
 
 def _camera_truth(rng, seed: int) -> dict:
@@ -178,7 +178,7 @@ def random_suite(seed: int = 2026) -> dict:
         out[f"triskele_push_release_r{k}"] = dict(
             base,
             description=f"Triskele-bot push-release, truth drawn at random inside the prior (suite seed {seed}), "
-            "simulated on a grid 3x finer in space, 40x in time.",
+            "simulated on a grid 9x finer in space, extrapolated to dt 0 from 5x and 10x in time.",
             rod=_start_tau(rng, tau),
             load=dict(force=np.round(told[:2], 5).tolist() + [0.0], moment=[0.0, 0.0, round(told[2], 6)], release_time=0.0),
             truth=dict(
@@ -198,7 +198,7 @@ def random_suite(seed: int = 2026) -> dict:
         out[f"triskele_actuator_step_r{k}"] = dict(
             base,
             description=f"Triskele-bot actuator step (bases by {', '.join(f'{m * 1e6:+.2f}' for m in move)} um in 10 ms at "
-            f"0.05 s), truth drawn at random inside the prior (suite seed {seed}), simulated 3x finer in space, extrapolated to dt 0 from 5x and 10x in time.",
+            f"0.05 s), truth drawn at random inside the prior (suite seed {seed}), simulated 9x finer in space, extrapolated to dt 0 from 5x and 10x in time.",
             rod=_start_tau(rng, tau),
             actuation=dict(base["actuation"], final=move),
             truth=dict(base["truth"], tau=round(tau, 7), lengths=lengths, **_camera_truth(rng, seed + 10 * k + 2)),
@@ -226,7 +226,7 @@ def random_suite(seed: int = 2026) -> dict:
     for spec in out.values():
         solver = spec["solver"]
         spec["truth_solver"] = dict(
-            solver, nodes=solver["nodes"] * FINER["nodes"], dt=solver["dt"] / FINER["dt"][spec["experiment"]]
+            solver, nodes=solver["nodes"] * FINER["nodes"][spec["scene"]], dt=solver["dt"] / FINER["dt"][spec["experiment"]]
         )
     return out
 
