@@ -74,7 +74,7 @@ is reported as failed and its values are not used.
 
 **Rival basins.** The fit's grid can prefer another basin of the loss than finer grids do, and
 the chains, each refit starting from the coarser answer, then converge cleanly to the wrong one.
-On `triskele_push_release_r1` (truth simulated 40x finer in time) the start put the lengths 12 um
+On `triskele_push_release_r1` (truth simulated on a grid converged at the noise) the start put the lengths 12 um
 from the truth; the fit's grid (10 nodes, dt 0.5 ms) walked 360 um away to a basin whose time
 moves (11.9, 2.8, 0.58 SE down to dt 62.5 us) shrink at order 2.1-2.3, and answered 13 SE from
 the truth; yet on the finest grid the truth, push and camera fitted, had a loss 4.5 below that

@@ -168,7 +168,7 @@ def test_free_motion_screen_is_blind_to_aliasing_push_camera_and_clock():
 
 def test_platform_screen_finds_a_finer_grid_recordings_lengths():
     """The push-release start on `triskele_push_release_r1` (truth drawn inside the prior,
-    simulated 3x finer in space and 40x in time than the fit's grid): the frequency features left
+    simulated 9x finer in space and extrapolated to dt 0 in time): the frequency features left
     30 % of the prior matching and none of the polished candidates near the truth; the
     time-domain screen of the lumped modes puts its best within 50 um of the truth on every rod
     (the prior is +-2 mm) and tau within 20 %, from tau a factor 3 off. Measured: 15 um, 1 %."""
@@ -324,9 +324,9 @@ SUITE.append("cantilever_independent")  # made by experiments_data/independent_r
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SUITE)
 def test_fit_recovers_random_truths_simulated_finer(name, tmp_path):
-    """The random-truth suite (truths drawn inside the prior, simulated 3x finer in space and 40x
-    (Triskele push-release), 100x (cantilever) or 5x (Triskele actuator step) in time than the
-    fit's grid), fitted from the nominal lengths and the sidecar's tau (a factor 3 off): every
+    """The random-truth suite (truths drawn inside the prior, simulated on a grid converged at the
+    noise: the Triskele's 9x finer in space and extrapolated to dt 0, the cantilever's 3x in space
+    and 100x in time), fitted from the nominal lengths and the sidecar's tau (a factor 3 off): every
     physical truth within 3 combined uncertainties (statistical and discretisation)."""
     rec = load_recording(f"{DATA}/{name}.csv")
     res = fit(Problem(rec, ("tau", "lengths")), state_dir=tmp_path)
