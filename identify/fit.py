@@ -132,12 +132,6 @@ def _implausible_push(problem: Problem, theta) -> str:
     return ""
 
 
-def noise_levels(residuals) -> np.ndarray:
-    """Noise levels (m, m, rad) of the three columns from ``residuals`` (M, 3) in their units:
-    one level (`robust.noise_level`) for the two positions, one for the angle."""
-    return np.maximum([robust.noise_level(residuals[:, :2])] * 2 + [robust.noise_level(residuals[:, 2])], 1e-15)
-
-
 def windows(duration: float, first: float = 0.1) -> list:
     """Window end times of the continuation: ``first``, doubling, then the whole recording (None)."""
     out, w = [], first
@@ -249,7 +243,7 @@ def fit(
             res = (r if known else np.asarray(pb.residual(theta))).reshape(-1, 3) * old
             clean = pb.keep.copy()
             clean[robust.spikes(res, pb.keep)] = False
-            pb = pb.with_noise(noise_levels(res[clean]), robust.HUBER)
+            pb = pb.with_noise(robust.noise_levels(res[clean]), robust.HUBER)
             if known:
                 z = (r.reshape(-1, 3) * (old / pb.sigma)).reshape(-1)
                 slope = np.asarray(robust.huber_slope(z, pb.huber))

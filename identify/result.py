@@ -52,20 +52,7 @@ def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
     keep = np.asarray(problem.window(t_end)[0]) > 0
     m, p = problem.counted(t_end), theta.size
     chi2 = float(r @ r) / max(m - p, 1)
-    cov = covariance(J) * chi2
-    se_theta = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    corr = cov / np.outer(se_theta, se_theta)
-    vals = problem.to_values(jnp.asarray(theta))
-    values, errors = {}, {}
-    for u in problem.unknowns:
-        v = np.atleast_1d(np.asarray(vals[u.name], float))
-        s = se_theta[problem.slices[u.name]] * (v if u.log else u.unit)  # d exp(x) = exp(x) dx
-        values[u.name] = v.tolist() if u.size > 1 else float(v[0])
-        errors[u.name] = s.tolist() if u.size > 1 else float(s[0])
-    frame, G = problem.frame(theta)  # the pattern frame, derived: errors by the delta method
-    frame_se = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
-    values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
-    errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
+    values, errors, corr = _errors(problem, theta, covariance(J) * chi2)
     res = (np.asarray(robust.unhuber(r, problem.huber)).reshape(-1, 3) * problem.sigma)[keep]  # before the Huber loss
     return Result(
         labels=problem.labels(),
@@ -77,3 +64,41 @@ def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:
         rms=np.sqrt(np.mean(res**2, axis=0)).tolist(),
         **info,
     )
+
+
+def noise_covariance(problem: Problem, J, sigma) -> np.ndarray:
+    """The covariance of theta at an optimum whose Jacobian ``J`` is whitened with
+    ``problem.sigma``, when the columns' noise levels are ``sigma`` (m, m, rad) instead: the fit
+    weighted each column with its own level, so the covariance is the sandwich
+    A^-1 J^T D J A^-1 (A = J^T J; D, per row, the new variance over the weighting one)."""
+    A = covariance(J)
+    d = np.tile((np.asarray(sigma, float) / problem.sigma) ** 2, J.shape[0] // 3)
+    return A @ ((J.T * d) @ J) @ A
+
+
+def with_noise(result: Result, problem: Problem, theta, J, sigma) -> tuple[Result, np.ndarray]:
+    """(``result`` with its standard errors, correlations and noise levels for the noise levels
+    ``sigma`` (`noise_covariance`), the standard errors of theta)."""
+    cov = noise_covariance(problem, J, sigma)
+    _, errors, corr = _errors(problem, theta, cov)
+    out = dataclasses.replace(result, standard_errors=errors, correlation=corr.tolist(), sigma=[float(sigma[0]), float(sigma[2])])
+    return out, np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def _errors(problem: Problem, theta, cov) -> tuple[dict, dict, np.ndarray]:
+    """(values, standard errors, correlation) of the unknowns at ``theta`` whose covariance is
+    ``cov``, with the pattern frame derived and its errors by the delta method."""
+    se_theta = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    corr = cov / np.outer(se_theta, se_theta)
+    vals = problem.to_values(jnp.asarray(theta))
+    values, errors = {}, {}
+    for u in problem.unknowns:
+        v = np.atleast_1d(np.asarray(vals[u.name], float))
+        s = se_theta[problem.slices[u.name]] * (v if u.log else u.unit)  # d exp(x) = exp(x) dx
+        values[u.name] = v.tolist() if u.size > 1 else float(v[0])
+        errors[u.name] = s.tolist() if u.size > 1 else float(s[0])
+    frame, G = problem.frame(theta)
+    frame_se = np.sqrt(np.maximum(np.diag(G @ cov @ G.T), 0.0))
+    values.update(frame_offset=frame[:2].tolist(), frame_rotation=float(frame[2]))
+    errors.update(frame_offset=frame_se[:2].tolist(), frame_rotation=float(frame_se[2]))
+    return values, errors, corr

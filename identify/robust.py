@@ -88,3 +88,9 @@ def spikes(residuals, keep) -> np.ndarray:
 def noise_level(residuals) -> float:
     """The root-mean-square of ``residuals`` (any shape)."""
     return float(np.sqrt(np.mean(np.square(residuals))))
+
+
+def noise_levels(residuals) -> np.ndarray:
+    """Noise levels (m, m, rad) of the three columns from ``residuals`` (M, 3) in their units:
+    one level (`noise_level`) for the two positions, one for the angle."""
+    return np.maximum([noise_level(residuals[:, :2])] * 2 + [noise_level(residuals[:, 2])], 1e-15)

@@ -10,7 +10,8 @@ import types
 
 import numpy as np
 
-from identify import discretisation
+from identify import discretisation, robust
+from identify.problem import Unknown
 
 RNG = np.random.default_rng(4)
 FRAMES, UNKNOWNS = 40, 3
@@ -36,6 +37,17 @@ class Linear:
         )
         self.max_step = np.inf
         self.measured = np.ones(UNKNOWNS, bool)
+        self.sigma = np.full(3, SIGMA)  # the whitening of the three columns
+        self.huber = robust.NONE
+        self.keep = np.ones(FRAMES, bool)
+        self.unknowns = [Unknown("a", 2, False, 1.0), Unknown("b", 1, False, 1.0)]
+        self.slices = {"a": slice(0, 2), "b": slice(2, 3)}
+
+    def to_values(self, theta):
+        return {"a": np.asarray(theta)[:2], "b": np.asarray(theta)[2]}
+
+    def frame(self, theta):  # no camera frame: zero, and independent of theta
+        return np.zeros(3), np.zeros((3, UNKNOWNS))
 
     def window(self, t_end=None):
         return (T <= (np.inf if t_end is None else t_end)).astype(float), None
@@ -45,11 +57,11 @@ class Linear:
 
     def residual(self, theta, t_end=None):
         rows = np.repeat(self.window(t_end)[0] > 0, 3)
-        return np.where(rows, self.A @ np.asarray(theta) - B - self.offset(self.dt), 0.0) / SIGMA
+        return np.where(rows, self.A @ np.asarray(theta) - B - self.offset(self.dt), 0.0) / np.tile(self.sigma, FRAMES)
 
     def residual_and_jacobian(self, theta, t_end=None):
         rows = np.repeat(self.window(t_end)[0] > 0, 3)
-        return self.residual(theta, t_end), np.where(rows[:, None], self.A, 0.0) / SIGMA
+        return self.residual(theta, t_end), np.where(rows[:, None], self.A, 0.0) / np.tile(self.sigma, FRAMES)[:, None]
 
     def refined(self, nodes, dt, tol):
         return Linear(nodes, dt, self.offset)
@@ -215,8 +227,10 @@ class SecondOrder(Linear):
         super().__init__(nodes, dt, offset)
         self.A = A0 @ (np.eye(UNKNOWNS) + P_T2 * dt**2 + P_T3 * dt**3)
 
-    def refined(self, nodes, dt, tol):
-        return SecondOrder(nodes, dt)
+    def refined(self, nodes, dt, tol):  # the same whitening, as `Problem.refined` keeps it
+        out = SecondOrder(nodes, dt)
+        out.sigma = self.sigma
+        return out
 
     def reported(self, theta):
         return {"a": np.asarray(theta)[:2], "b": float(np.asarray(theta)[2])}
@@ -320,6 +334,14 @@ class TwoBasins(Linear):
         super().__init__(nodes, dt)
         self.flips = flips
         self.measured = np.ones(1, bool)
+        self.sigma = np.ones(3)  # unit noise
+        self.unknowns, self.slices = [Unknown("x", 1, False, 1.0)], {"x": slice(0, 1)}
+
+    def to_values(self, theta):
+        return {"x": np.asarray(theta)[0]}
+
+    def frame(self, theta):
+        return np.zeros(3), np.zeros((3, 1))
 
     def _rows(self, x):
         a, b = self.C * self.dt**2, 1.0 + self.C * self.dt**2
@@ -394,3 +416,57 @@ def test_a_start_whose_basin_fits_worse_on_the_finest_grid_leaves_the_answer():
     whats = [r["refit"] for r in rep.refinements]
     assert whats[-1] == "rival" and whats.count("rival") == 1, whats
     assert abs(rep.values["x"]) < 0.01 and "fits better" not in rep.message and "as well" not in rep.message
+
+
+def test_the_sandwich_covariance_is_the_spread_of_a_fit_weighted_with_other_noise_levels():
+    """A linear fit that weights the three columns with levels (3, 3, 0.5) times the true ones,
+    as a fit whose coarse grid's residuals inflate the positions' noise does: `noise_covariance`
+    with the true levels equals the covariance of its answers over 4000 noise draws (Monte Carlo
+    to its sampling error), and the plain rescaled covariance does not."""
+    from identify.result import noise_covariance
+
+    true = np.array([2e-9, 2e-9, 2e-6])
+    weights = true * np.array([3.0, 3.0, 0.5])
+    pb = types.SimpleNamespace(sigma=weights)
+    A = RNG.standard_normal((3 * FRAMES, UNKNOWNS)) * np.tile(true * 1e6, FRAMES)[:, None]
+    J = A / np.tile(weights, FRAMES)[:, None]
+    draws = np.random.default_rng(3).standard_normal((4000, 3 * FRAMES)) * np.tile(true, FRAMES)
+    answers = np.linalg.lstsq(J, (draws / np.tile(weights, FRAMES)).T, rcond=None)[0].T
+    spread = np.cov(answers.T)
+    got = noise_covariance(pb, J, true)
+    np.testing.assert_allclose(np.sqrt(np.diag(got)), np.sqrt(np.diag(spread)), rtol=0.05)
+    r = np.linalg.lstsq(J, (draws[0] / np.tile(weights, FRAMES)), rcond=None)
+    rescaled = (
+        np.linalg.inv(J.T @ J) * float(np.sum((J @ r[0] - draws[0] / np.tile(weights, FRAMES)) ** 2)) / (J.shape[0] - UNKNOWNS)
+    )
+    assert np.max(np.abs(np.sqrt(np.diag(rescaled) / np.diag(spread)) - 1)) > 0.2
+
+
+def test_noise_levels_and_standard_errors_come_from_the_finest_model():
+    """A fit grid whose position columns carry a model error (a misfit of 5 noise levels that
+    the refined grids do not have), so that the fit estimated their noise 3.6x too high and the
+    angle's right: the reported noise levels are the finest model's, within 15 % of the true
+    one in every column (one factor for all columns, the finest reduced chi-square, left the
+    positions 2.6x too high and the angle 0.6x too low), and the standard errors follow."""
+    from identify.result import Result, noise_covariance
+
+    misfit = np.tile([5 * SIGMA, 5 * SIGMA, 0.0], FRAMES) * np.sin(np.arange(3 * FRAMES))
+    coarse = SecondOrder(10, 0.1, offset=lambda dt: misfit)  # its refinements have no misfit
+    raw = (coarse.A @ coarse.optimum() - B - misfit).reshape(-1, 3)
+    coarse.sigma = robust.noise_levels(raw)  # the fit's own estimate, per column
+    assert coarse.sigma[0] > 3 * SIGMA and abs(coarse.sigma[2] / SIGMA - 1) < 0.3
+    theta = coarse.optimum()
+    r, J = coarse.residual_and_jacobian(theta)
+    chi2 = float(r @ r) / (r.size - UNKNOWNS)
+    se = np.sqrt(np.diag(np.linalg.inv(J.T @ J)) * chi2)
+    result = Result(
+        labels=coarse.labels(), values=coarse.reported(theta), standard_errors={"a": se[:2].tolist(), "b": float(se[2])},
+        correlation=[], sigma=[float(coarse.sigma[0]), float(coarse.sigma[2])], loss=chi2, rms=[],
+    )  # fmt: skip
+    rep = discretisation.report(coarse, theta, J, result, max_levels=2)
+    np.testing.assert_allclose(rep.sigma, SIGMA, rtol=0.15)
+    # the fit's estimator under the true noise (its covariance checked by Monte Carlo above)
+    se_true = np.sqrt(np.diag(noise_covariance(coarse, J, np.full(3, SIGMA))))
+    got = np.append(rep.standard_errors["a"], rep.standard_errors["b"])
+    np.testing.assert_allclose(got, se_true, rtol=0.15)
+    assert np.max(np.abs(se * np.sqrt(rep.refinements[-1]["reduced_chi2"] / chi2) / se_true - 1)) > 0.3  # one factor for all
