@@ -232,6 +232,9 @@ def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> dict:
                     upper=None if math.isnan(pr.upper) else value(pr.upper),
                     lowest=value(pr.lowest),
                     drop=pr.drop / chi2,
+                    # the fit's grid's Gauss-Newton standard error that scaled the walk (with that
+                    # grid's noise levels, not the finest model's that the result reports)
+                    standard_error=se_theta[index] * (value(theta[index]) if u.log else u.unit),
                     points=[[value(x), (float(c) - cost0) / chi2] for x, c in zip(pr.theta, pr.cost, strict=True)],
                 )
             )

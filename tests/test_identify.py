@@ -477,7 +477,7 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     assert set(res["profiles"]) == {"tau", "lengths"} and "68 % profile interval" in printed
     for name, pr in res["profiles"].items():
         fitted = res["refinements"][0]["values"][name]  # the tolerance refit: the fit's grid
-        se = res["standard_errors"][name]
+        se = pr["standard_error"]  # the fit's grid's, whose noise levels the profile's loss has
         assert abs(pr["drop"]) < 0.05 and pr["lower"] < fitted < pr["upper"], (name, pr, fitted)
         assert abs(0.5 * (pr["upper"] - pr["lower"]) / se - 1) < 0.2, (name, pr, se)
     assert np.allclose(sorted(res["outliers"]), np.sort(rec.t[wild])), (res["outliers"], np.sort(rec.t[wild]))
