@@ -31,8 +31,8 @@ error too, and not in the same measure in each column (the position's can be mos
 error, the angle's mostly noise). They are measured again, per column, on the finest model's
 residuals (`finest_noise`), and the standard errors are those of the fit's estimator (which
 weighted the columns with the coarse levels) under these levels: the sandwich covariance
-(`result.noise_covariance`). The moves each refit measured in the standard errors of its time
-are converted to these for the settled test. A single rescaling by the finest reduced
+(`result.noise_covariance`). The moves the refits measured (in the fit's standard errors
+rescaled by one factor) are converted to these for the settled test. A single rescaling by the finest reduced
 chi-square put the positions' noise at 7.1 nm and the angle's at 1.3 urad on
 `triskele_actuator_step_r1`, where it is 2 nm and 2 urad (measured: 2.1 nm, 2.0 urad).
 
