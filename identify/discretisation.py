@@ -425,10 +425,8 @@ def finest_noise(problem, theta, p: int) -> np.ndarray:
     they were 13 nm and 2.4 urad at 10 nodes, where the noise is 2 nm and 2 urad and the finest
     model's residuals 2.1 nm and 2.0 urad."""
     res = np.asarray(robust.unhuber(problem.residual(theta), problem.huber)).reshape(-1, 3) * problem.sigma
-    clean = problem.keep.copy()
-    clean[robust.spikes(res, problem.keep)] = False
     m = problem.counted(None)
-    return robust.noise_levels(res[clean]) * np.sqrt(m / max(m - p, 1))
+    return robust.clean_noise_levels(res, problem.keep) * np.sqrt(m / max(m - p, 1))
 
 
 def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,), rivals=()):
@@ -439,9 +437,8 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     quadrature: the two errors add independently to leading order) and tolerance error, the
     model they come from and the refits made; its message says when a last refinement still
     moved a measured value (`Problem.measured`) by more than a third of its standard error."""
-    levels, notes = refine(
-        problem, theta, J, standard_errors_theta(J, result.loss), max_levels, progress, result.loss, window_ends, rivals
-    )
+    se_fit = standard_errors_theta(J, result.loss)
+    levels, notes = refine(problem, theta, J, se_fit, max_levels, progress, result.loss, window_ends, rivals)
     message = _sentences([result.message, *notes])
     chains = {w: [i for i, lv in enumerate(levels) if lv.what == w] for w in ("space", "time")}
     if not all(chains.values()):  # a refinement failed: the fit's own values, no error claimed
@@ -450,7 +447,6 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     finest = levels[-1]
     sigma = finest_noise(finest.problem, finest.theta, theta.size)
     rescaled, se_final = result_module.with_noise(result, problem, theta, J, sigma)
-    se_fit = standard_errors_theta(J, result.loss)
 
     def in_final_se(level, moves):
         """Moves in ``level``'s standard errors (the fit's rescaled by its reduced chi-square, as

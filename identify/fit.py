@@ -241,9 +241,7 @@ def fit(
             known = r is not None
             old = pb.sigma
             res = (r if known else np.asarray(pb.residual(theta))).reshape(-1, 3) * old
-            clean = pb.keep.copy()
-            clean[robust.spikes(res, pb.keep)] = False
-            pb = pb.with_noise(robust.noise_levels(res[clean]), robust.HUBER)
+            pb = pb.with_noise(robust.clean_noise_levels(res, pb.keep), robust.HUBER)
             if known:
                 z = (r.reshape(-1, 3) * (old / pb.sigma)).reshape(-1)
                 slope = np.asarray(robust.huber_slope(z, pb.huber))

@@ -94,3 +94,11 @@ def noise_levels(residuals) -> np.ndarray:
     """Noise levels (m, m, rad) of the three columns from ``residuals`` (M, 3) in their units:
     one level (`noise_level`) for the two positions, one for the angle."""
     return np.maximum([noise_level(residuals[:, :2])] * 2 + [noise_level(residuals[:, 2])], 1e-15)
+
+
+def clean_noise_levels(residuals, keep) -> np.ndarray:
+    """`noise_levels` of ``residuals`` (M, 3) over the counted frames ``keep`` that a decoding
+    error did not throw off (`spikes`)."""
+    clean = np.array(keep, bool)
+    clean[spikes(residuals, keep)] = False
+    return noise_levels(np.asarray(residuals)[clean])
