@@ -26,15 +26,16 @@ quadrature (for a convergent scheme, each about the error of the coarser of its 
 a bound on the finer's); if a last move of a measured parameter still exceeds a third of its
 standard error, the result says which.
 
-The noise levels were estimated from the fit's residuals, which hold the coarse grid's model
-error too, and not in the same measure in each column (the position's can be mostly model
-error, the angle's mostly noise). They are measured again, per column, on the finest model's
-residuals (`finest_noise`), and the standard errors are those of the fit's estimator (which
-weighted the columns with the coarse levels) under these levels: the sandwich covariance
-(`result.noise_covariance`). The moves the refits measured (in the fit's standard errors
-rescaled by one factor) are converted to these for the settled test. A single rescaling by the finest reduced
-chi-square put the positions' noise at 7.1 nm and the angle's at 1.3 urad on
-`triskele_actuator_step_r1`, where it is 2 nm and 2 urad (measured: 2.1 nm, 2.0 urad).
+**Standard errors.** The fit's noise levels come from its own residuals, which hold the
+coarse grid's model error too, and not in the same measure in each column (the position's can
+be mostly model error, the angle's mostly noise). Each refit measures them again, per column,
+on its own residuals, and its standard errors are those of the fit's estimator (which weighted
+the columns with the coarse levels) under these levels: the sandwich covariance
+(`noise_and_errors`). Each move is measured in the finer model's, and the finest model's are
+the ones reported. A single rescaling by the reduced chi-square put the positions' noise at 7.1
+nm and the angle's at 1.3 urad on `triskele_actuator_step_r1`, where it is 2 nm and 2 urad
+(measured on the finest refit: 2.1 nm, 2.0 urad), so its standard errors were up to 3 times too
+wide and the moves looked that much smaller.
 
 **Extrapolation in dt.** BDF-alpha is second order, so once two successive time moves shrink at
 that order (observed order log2(|m1| / |m2|) within ``ORDER_BAND`` of 2, over the measured
@@ -110,7 +111,7 @@ import numpy as np
 
 from . import result as result_module
 from . import robust
-from .least_squares import FitError, decrement, levenberg_marquardt, standard_errors_theta
+from .least_squares import FitError, decrement, levenberg_marquardt
 
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
 TOL_FACTOR = 0.1
@@ -133,9 +134,9 @@ def extrapolation(prev, last, measured):
     p and the error estimate |2**p m2 - m1| / (2**p - 1) of the extrapolated value (the
     difference of the extrapolations from the last two pairs of grids) is below the last move
     (module doc)."""
-    # each move is in the standard errors of its own model (rescaled by its reduced chi-square):
-    # m1 goes into last's, or a 2 % difference in the scales leaves several SE in 4 m2 - m1
-    m1 = np.asarray(prev.move_se, float) * np.sqrt(prev.chi2 / last.chi2)
+    # each move is in the standard errors of its own model (its noise levels): m1 goes into
+    # last's, or a 2 % difference in the scales leaves several SE in 4 m2 - m1
+    m1 = np.asarray(prev.move_se, float) * prev.se / np.maximum(last.se, 1e-300)
     m2 = np.asarray(last.move_se, float)
     k = 2.0 ** ORDER[last.what]
     error = np.abs(k * m2 - m1) / (k - 1.0)
@@ -150,8 +151,10 @@ def extrapolation(prev, last, measured):
 @dataclasses.dataclass(frozen=True)
 class Level:
     """One refit: its model (nodes, dt, tol), the values there, their move in standard errors
-    (per label) from the model it refines (``parent``: an index into the levels; None: the
-    fit's own), the reduced chi-square and the chord iterations."""
+    ``se`` (per label) from the model it refines (``parent``: an index into the levels; None:
+    the fit's own), the reduced chi-square, the noise levels measured on its residuals
+    (`noise_and_errors`: ``se`` are the fit's estimator's standard errors under them) and the
+    chord iterations."""
 
     what: str
     nodes: int
@@ -162,6 +165,8 @@ class Level:
     chi2: float
     iterations: int
     wall_s: float
+    noise: np.ndarray
+    se: np.ndarray
     problem: object = dataclasses.field(repr=False, compare=False, default=None)
     parent: int | None = None
     jacobians: int = 0
@@ -174,6 +179,7 @@ class Level:
             tol=self.tol,
             largest_move_se=float(np.max(np.abs(self.move_se))),
             reduced_chi2=self.chi2,
+            noise=[float(self.noise[0]), float(self.noise[2])],
             chord_iterations=self.iterations,
             jacobians=self.jacobians,
             wall_s=round(self.wall_s, 1),
@@ -219,7 +225,7 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
 
 
 def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH):
-    """(theta, cost, iterations, Jacobians) minimising ``problem``'s residuals over the whole
+    """(theta, residuals, iterations, Jacobians) minimising ``problem``'s residuals over the whole
     recording from ``theta``. Over the windows ending at ``window_ends`` before the last (the
     fit's continuation: a coarse grid's answer can be cycles of phase off over a long recording,
     as the Triskele's 150 Hz modes are at dt 0.5 ms), each from the previous one's answer, the
@@ -243,24 +249,25 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
             break
         theta, r, it = _held(problem, theta, J, None, max_iter, still, r)
         total += it
-    return theta, 0.5 * float(r @ r), total, jacobians
+    return theta, r, total, jacobians
 
 
 def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
-    """(theta, cost, iterations, Jacobians) of the first `chord_refit` of ``fine`` from
+    """(theta, residuals, iterations, Jacobians) of the first `chord_refit` of ``fine`` from
     ``tries`` ((start, window ends), in order) that ends within ``WORSE`` times the fit's
     reduced chi-square ``chi2`` (``m`` degrees of freedom); raises `FitError` saying why the
     last did not (a finer model that fits far worse than the coarse one: a wrong minimum)."""
     iterations = jacobians = 0
     for start, ends in tries:
         try:
-            th, cost, it, jac = chord_refit(fine, start, J, ends, refresh=refresh)
+            th, r, it, jac = chord_refit(fine, start, J, ends, refresh=refresh)
         except FitError as e:
             why = f"failed ({e})"
             continue
         iterations, jacobians = iterations + it, jacobians + jac
+        cost = 0.5 * float(r @ r)
         if 2 * cost / max(m, 1) <= WORSE * chi2:
-            return th, cost, iterations, jacobians
+            return th, r, iterations, jacobians
         why = (
             f"reached a reduced chi-square of {2 * cost / max(m, 1):.3g} against the fit's {chi2:.3g}: it did not find that "
             "model's optimum"
@@ -268,17 +275,32 @@ def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
     raise FitError(why)
 
 
-def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
+def noise_and_errors(problem, J, fine, r, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """(noise levels (m, m, rad), standard errors of theta) measured on the refined model
+    ``fine``'s residuals ``r`` over the whole recording (``p`` unknowns), the frames thrown off
+    left out as in the fit: the levels are the residuals' RMS per column, the errors those of the
+    fit's estimator (``problem`` at its Jacobian ``J``, weighted with its own levels) under them
+    (`result.noise_covariance`). The fit's own levels come from its grid's residuals, which carry
+    that grid's model error: on `triskele_actuator_step_r1` they were 13 nm and 2.4 urad at 10
+    nodes, where the noise is 2 nm and 2 urad and the finest model's residuals 2.1 nm and 2.0
+    urad."""
+    res = np.asarray(robust.unhuber(r, fine.huber)).reshape(-1, 3) * fine.sigma
+    m = fine.counted(None)
+    noise = robust.clean_noise_levels(res, fine.keep) * np.sqrt(m / max(m - p, 1))
+    cov = result_module.noise_covariance(problem, J, noise)
+    return noise, np.sqrt(np.maximum(np.diag(cov), 1e-300))
+
+
+def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
     """(the `Level` list: the tolerance refit first, then the space refits, then the time
     refits; the notes: a refit that failed ends the list) for the fit ``problem`` at its
-    optimum ``theta`` (Jacobian ``J``, standard errors ``se_theta`` of theta at its reduced
-    chi-square ``chi2``, its noise levels). Space: twice the nodes at the fit's dt, while the
-    move of a measured parameter exceeds a third of a standard error, up to ``max_levels``
-    times; then time: half the dt, the same way, at the coarser grid of a space move below a
-    third of an SE (else at the finest). Each move is in the standard errors of its own model
-    (rescaled by its reduced chi-square). Then each start in ``rivals`` (theta) that lies in
-    another basin contests the answer on the finest grid (`_contest`). ``progress(message)``.
-    The failures and the contests' findings are returned as notes."""
+    optimum ``theta`` (Jacobian ``J``, reduced chi-square ``chi2``). Space: twice the nodes at
+    the fit's dt, while the move of a measured parameter exceeds a third of a standard error, up
+    to ``max_levels`` times; then time: half the dt, the same way, at the coarser grid of a
+    space move below a third of an SE (else at the finest). Each move is in the standard errors
+    of the finer model's noise levels (`noise_and_errors`). Then each start in ``rivals``
+    (theta) that lies in another basin contests the answer on the finest grid (`_contest`).
+    ``progress(message)``. The failures and the contests' findings are returned as notes."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
@@ -294,14 +316,16 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
         # tolerance) the fit's Jacobian is the model's
         tries = ([(predicted, (None,))] if predicted is not None else []) + [(base, windows)]
         try:
-            th, cost, iterations, jacobians = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
+            th, r, iterations, jacobians = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} {e}, so its {what} error is not measured")
             return None
-        chi2_here = 2 * cost / max(m, 1)
-        move = (th - base) / np.maximum(se_theta * np.sqrt(chi2_here / chi2), 1e-300)
-        levels.append(Level(what, n, h, tl, th, move, chi2_here, iterations, time.perf_counter() - t0, fine, parent, jacobians))
-        say(f"  largest move {np.max(np.abs(move)):.3g} SE, reduced chi-square {chi2_here:.4g}")
+        noise, se = noise_and_errors(problem, J, fine, r, theta.size)
+        levels.append(
+            Level(what, n, h, tl, th, (th - base) / se, float(r @ r) / max(m, 1), iterations, time.perf_counter() - t0, noise, se,
+                  fine, parent, jacobians)
+        )  # fmt: skip
+        say(f"  largest move {np.max(np.abs(levels[-1].move_se)):.3g} SE, reduced chi-square {levels[-1].chi2:.4g}")
         return levels[-1]
 
     base = np.asarray(theta, float)
@@ -327,12 +351,12 @@ def refine(problem, theta, J, se_theta, max_levels: int = 2, progress=None, chi2
             if settled:
                 break
     for start in rivals:
-        if _contest(problem, levels, notes, np.asarray(start, float), se_theta, chi2, m, say, window_ends):
+        if _contest(problem, levels, notes, np.asarray(start, float), J, chi2, m, say, window_ends):
             break
     return levels, notes
 
 
-def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends) -> bool:
+def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends) -> bool:
     """Whether ``start`` (theta: where the fit began) takes the answer over from the chain's
     (`refine`'s module text, "Rival basins"): on the finest grid its push and camera are fitted
     (`Problem.fit_linear`) and, unless it then fits more than ``WORSE`` times worse than the
@@ -345,8 +369,7 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
     last = levels[-1]
     if last.what != "time":
         return False
-    scale = np.sqrt(last.chi2 / chi2)
-    far = np.max(np.abs((start - last.theta) / (se_theta * scale))[problem.measured])
+    far = np.max(np.abs((start - last.theta) / last.se)[problem.measured])
     if far <= RIVAL_SE:
         return False
     t0 = time.perf_counter()
@@ -363,13 +386,15 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
     # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
     tries = [(start, (None,))] + ([(start, window_ends)] if len(window_ends) > 1 else [])
     try:
-        th, cost, it, jac = _attempt(fine, tries, held, m, chi2)
+        th, r, it, jac = _attempt(fine, tries, held, m, chi2)
     except FitError as e:
         notes.append(f"the refit from the start on the finest grid {e}")
         return False
+    cost = 0.5 * float(r @ r)
+    noise, se = noise_and_errors(problem, J, fine, r, start.size)
     levels.append(
-        Level("rival", last.nodes, last.dt, last.tol, th, (th - last.theta) / (se_theta * scale), 2 * cost / m, it,
-              time.perf_counter() - t0, fine, len(levels) - 1, jac)
+        Level("rival", last.nodes, last.dt, last.tol, th, (th - last.theta) / se, 2 * cost / m, it, time.perf_counter() - t0,
+              noise, se, fine, len(levels) - 1, jac)
     )  # fmt: skip
     say(f"  its optimum's loss {cost:.6g} against the answer's {answer:.6g}")
     moved = problem.labels()[int(np.argmax(np.where(problem.measured, np.abs(levels[-1].move_se), 0.0)))]
@@ -381,29 +406,32 @@ def _contest(problem, levels, notes, start, se_theta, chi2, m, say, window_ends)
                 "does not tell the two apart"
             )
         return False
-    chain = [(th, cost, it, jac, fine, time.perf_counter() - t0)]
-    for k in (1, 2):  # the rival's time error: its optimum on coarser grids
+    # the rival's time error: its optimum on coarser grids (at 4 dt, 2 dt; the finest's is the one above)
+    rival = levels[-1]
+    coarse = [rival]
+    for k in (1, 2):
         t0 = time.perf_counter()
         h = last.dt * 2**k
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, cost, it, jac = _attempt(coarser, [(chain[-1][0], (None,))], held, m, chi2)
+            th, r, it, jac = _attempt(coarser, [(coarse[-1].theta, (None,))], held, m, chi2)
         except FitError as e:
             notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False
-        chain.append((th, cost, it, jac, coarser, time.perf_counter() - t0))
-    (v1, c1, _, _, p1, w1), (v2, c2, i2, j2, p2, w2), (v4, c4, i4, j4, p4, w4) = chain
-    se = lambda c: se_theta * np.sqrt(2 * c / m / chi2)  # noqa: E731
+        noise, se = noise_and_errors(problem, J, coarser, r, start.size)
+        coarse.append(Level("rival", last.nodes, h, last.tol, th, np.zeros_like(th), float(r @ r) / m, it,
+                            time.perf_counter() - t0, noise, se, coarser, None, jac))  # fmt: skip
     base = len(levels)
+    at4, at2, at1 = coarse[2], coarse[1], coarse[0]
     levels += [
-        Level("rival", last.nodes, 4 * last.dt, last.tol, v4, np.zeros_like(v4), 2 * c4 / m, i4, w4, p4, None, j4),
-        Level("time", last.nodes, 2 * last.dt, last.tol, v2, (v2 - v4) / se(c2), 2 * c2 / m, i2, w2, p2, base, j2),
-        Level("time", last.nodes, last.dt, last.tol, v1, (v1 - v2) / se(c1), 2 * c1 / m, 0, w1, p1, base + 1),
+        at4,
+        dataclasses.replace(at2, what="time", move_se=(at2.theta - at4.theta) / at2.se, parent=base),
+        dataclasses.replace(at1, what="time", move_se=(at1.theta - at2.theta) / at1.se, parent=base + 1, iterations=0),
     ]
     notes.append(
         f"on the finest grid ({last.nodes} nodes, dt {last.dt:.3g} s) the basin the fit started in fits better than the one "
-        f"the fit's grid led to (loss {c1:.6g} against {answer:.6g}; {moved} {np.max(np.abs(levels[base - 1].move_se)):.3g} "
+        f"the fit's grid led to (loss {0.5 * at1.chi2 * m:.6g} against {answer:.6g}; {moved} {np.max(np.abs(rival.move_se)):.3g} "
         "standard errors away): the values are from the start's basin, its time error from refits at 2 and 4 times that dt"
     )
     return True
@@ -418,17 +446,6 @@ def _difference(a: dict, b: dict) -> dict:
     return {k: np.abs(np.asarray(a[k]) - np.asarray(b[k])) for k in a}
 
 
-def finest_noise(problem, theta, p: int) -> np.ndarray:
-    """Noise levels (m, m, rad) from the residuals of ``problem`` (the finest model) at ``theta``
-    (``p`` unknowns), the frames thrown off left out as in the fit. The fit's own levels come
-    from its grid's residuals, which carry that grid's model error: on `triskele_actuator_step_r1`
-    they were 13 nm and 2.4 urad at 10 nodes, where the noise is 2 nm and 2 urad and the finest
-    model's residuals 2.1 nm and 2.0 urad."""
-    res = np.asarray(robust.unhuber(problem.residual(theta), problem.huber)).reshape(-1, 3) * problem.sigma
-    m = problem.counted(None)
-    return robust.clean_noise_levels(res, problem.keep) * np.sqrt(m / max(m - p, 1))
-
-
 def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,), rivals=()):
     """``result`` (the `fit.Result` of ``problem`` at ``theta``, Jacobian ``J``) with the values
     of the last model `refine` evaluated, or their extrapolation to dt 0 where the last two time
@@ -437,21 +454,18 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     quadrature: the two errors add independently to leading order) and tolerance error, the
     model they come from and the refits made; its message says when a last refinement still
     moved a measured value (`Problem.measured`) by more than a third of its standard error."""
-    se_fit = standard_errors_theta(J, result.loss)
-    levels, notes = refine(problem, theta, J, se_fit, max_levels, progress, result.loss, window_ends, rivals)
+    levels, notes = refine(problem, theta, J, max_levels, progress, result.loss, window_ends, rivals)
     message = _sentences([result.message, *notes])
     chains = {w: [i for i, lv in enumerate(levels) if lv.what == w] for w in ("space", "time")}
     if not all(chains.values()):  # a refinement failed: the fit's own values, no error claimed
         return dataclasses.replace(result, refinements=[lv.to_json() for lv in levels], message=message)
     at_fit = problem.reported(theta)
     finest = levels[-1]
-    sigma = finest_noise(finest.problem, finest.theta, theta.size)
-    rescaled, se_final = result_module.with_noise(result, problem, theta, J, sigma)
+    rescaled, _ = result_module.with_noise(result, problem, theta, J, finest.noise)
 
     def in_final_se(level, moves):
-        """Moves in ``level``'s standard errors (the fit's rescaled by its reduced chi-square, as
-        `refine` measures them) in the final ones."""
-        return moves * se_fit * np.sqrt(level.chi2 / result.loss) / np.maximum(se_final, 1e-300)
+        """Moves in ``level``'s standard errors (under its noise levels) in the finest's."""
+        return moves * level.se / finest.se
 
     values = {None: at_fit}  # level index -> its reported values (a short rollout each); None: the fit's
 
