@@ -108,6 +108,28 @@ def test_a_refit_that_fits_far_worse_is_reported_and_not_used():
     assert len(failed) == 1 and "did not find that model's optimum" in failed[0]
 
 
+def test_a_time_refit_on_a_finer_internal_grid_is_reported():
+    """pcrjax refines a rod's internal grid as dt shrinks (the dynamic step's boundary layer);
+    a time refit whose internal grid is finer than its parent's measured a space move too, and
+    the notes say so (they do not where the grid is held)."""
+
+    class Boundary(Linear):
+        def __init__(self, nodes, dt, offset=lambda dt: 0.0):
+            super().__init__(nodes, dt, offset)
+            self.scene.solver.grid_nodes = nodes * (2 if dt < 0.03 else 1)
+
+        def refined(self, nodes, dt, tol):
+            return Boundary(nodes, dt)
+
+    coarse = Boundary(10, 0.1)
+    theta, chi2, _ = _start(coarse)
+    levels, notes = discretisation.refine(coarse, theta, coarse.A / SIGMA, max_levels=2, chi2=chi2)
+    assert [(lv.what, lv.dt) for lv in levels][-2:] == [("time", 0.05), ("time", 0.025)]
+    assert len(notes) == 1 and "dt 0.025 s also refined the internal grid from 40 to 80 nodes" in notes[0], notes
+    levels, notes = discretisation.refine(Linear(10, 0.1), theta, coarse.A / SIGMA, max_levels=2, chi2=chi2)
+    assert not notes
+
+
 def test_only_the_measured_parameters_decide_the_refinement():
     """A grid that moves only a nuisance parameter (the push, the camera) by many standard
     errors: each chain stops after one refinement, the move still recorded."""
