@@ -142,7 +142,7 @@ def extrapolation(prev, last, measured):
     (module doc)."""
     # each move is in the standard errors of its own model (its noise levels): m1 goes into
     # last's, or a 2 % difference in the scales leaves several SE in 4 m2 - m1
-    m1 = np.asarray(prev.move_se, float) * prev.se / np.maximum(last.se, 1e-300)
+    m1 = np.asarray(prev.move_se, float) * prev.se / last.se
     m2 = np.asarray(last.move_se, float)
     k = 2.0 ** ORDER[last.what]
     error = np.abs(k * m2 - m1) / (k - 1.0)
@@ -336,8 +336,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
 
     def grid(i):
         """The internal grid's nodes of level ``i`` (None: the fit's)."""
-        solver = (problem if i is None else levels[i].problem).scene.solver
-        return getattr(solver, "grid_nodes", solver.nodes)
+        return (problem if i is None else levels[i].problem).scene.solver.grid_nodes
 
     base = np.asarray(theta, float)
     if refit("tolerance", nodes, dt, base, (None,), None) is None:

@@ -33,7 +33,7 @@ class Linear:
         k = np.arange(A0.size).reshape(A0.shape)
         self.A = A0 @ (np.eye(UNKNOWNS) + P_S / nodes + P_T * dt) + 0.02 * np.sin(k) / nodes
         self.scene = types.SimpleNamespace(
-            solver=types.SimpleNamespace(nodes=nodes, dt=dt, newton=types.SimpleNamespace(tol=1e-10))
+            solver=types.SimpleNamespace(nodes=nodes, grid_nodes=nodes, dt=dt, newton=types.SimpleNamespace(tol=1e-10))
         )
         self.max_step = np.inf
         self.measured = np.ones(UNKNOWNS, bool)
