@@ -14,9 +14,8 @@ names ending ``_r1``, ``_r2``) is not the fit's own model: its truths are drawn,
 the prior a fit is promised to hold in (each length within 2 mm of nominal, the damping time
 anywhere in a decade, the push within 10 % of the recorded one) and simulated on a finer grid
 than the sidecar's (the sidecars' ``[provenance]`` says which): 9x in space on the Triskele-bot,
-3x on the cantilever, and in time extrapolated to dt 0 from 5x and 10x (Triskele,
-`EXTRAPOLATED`) or 100x outright (cantilever), so a fit meets the discretisation error it would
-meet on a real log. The truth's grid is converged at the noise: at 5x in time alone the filmed
+3x on the cantilever, and in time extrapolated to dt 0 from 5x and 10x (Triskele) or 50x and
+100x (cantilever), so a fit meets the discretisation error it would meet on a real log. The truth's grid is converged at the noise: at 5x in time alone the filmed
 pose was off the converged motion by 17 um on the cantilever (noise 2 um) and 4.9 nm on the
 Triskele push (noise 2 nm), which put the fit's answer, extrapolated to dt 0, 38 standard errors
 from the cantilever's drawn length; the Triskele truths are within about 0.2 nm of the converged
@@ -132,16 +131,16 @@ RECORDINGS = {
 PRIOR_LENGTH = 2e-3
 PUSH_ERROR = 0.1
 TAU_DECADE = {"triskele": (1e-4, 1e-3), "cantilever": (1e-3, 1e-2)}
-# The truth's grid: nodes x9 on the Triskele-bot and x3 on the cantilever, and in time either
-# Richardson's extrapolation from dt / 5 and dt / 10 (`EXTRAPOLATED`; BDF-alpha is second order,
-# so s(h) + (s(h) - s(2h)) / 3 removes the h^2 term) or dt / 100 outright (the cantilever).
+# The truth's grid: nodes x9 on the Triskele-bot and x3 on the cantilever, and in time
+# Richardson's extrapolation from dt / FINER and twice that (BDF-alpha is second order, so
+# s(h) + (s(h) - s(2h)) / 3 removes the h^2 term). The cantilever's dt / 100 alone was 0.25
+# standard errors of its fitted length off in time.
 # Measured on the platform of `triskele_push_release_r2`'s truth (first 0.1 s at 30 nodes; first
 # 0.3 s at 30, 60 and 120 nodes, dt 125 us): in time, dt / 5 alone is 4.9 nm off, and the
 # extrapolation from dt / 5 and dt / 10 is 0.04 nm from the one from dt / 20 and dt / 40, which is
 # better than dt / 40 alone (0.08 nm off); in space, RK4 is fourth order (30 to 60 nodes 13 nm,
 # 60 to 120 nodes 0.81 nm, ratio 15.7), so 90 nodes are about 0.17 nm off. The noise is 2 nm.
 FINER = dict(nodes={"triskele": 9, "cantilever": 3}, dt={"push_release": 10, "release": 100, "actuator_step": 10})
-EXTRAPOLATED = ("push_release", "actuator_step")  # truths extrapolated to dt 0 from dt / FINER and twice that
 
 
 def _camera_truth(rng, seed: int) -> dict:
@@ -211,7 +210,7 @@ def random_suite(seed: int = 2026) -> dict:
         out[f"cantilever_release_r{k}"] = dict(
             base,
             description=f"Cantilever released from a tip load, truth drawn at random inside the prior (suite seed {seed}), "
-            "simulated 3x finer in space, 100x in time.",
+            "simulated 3x finer in space, extrapolated to dt 0 from 50x and 100x in time.",
             rod=_start_tau(rng, tau),
             tip=dict(force=[round(told[0], 4), 0.0, round(told[1], 4)], moment=[0.0, 0.0, 0.0], release_time=0.0),
             truth=dict(
@@ -258,11 +257,12 @@ INDEPENDENT = {
             missing_fraction=0.02,
             seed=2101,
         ),
-        # 640 edges: over the second the tip moves at most 0.96 um (x), 0.05 um (z), 2.8 urad
-        # from 320 edges' motion, and these moves fall 4x per halving, so the grid's own error
-        # is about a third of that, a tenth of the camera noise; then the time integrator's
-        # tolerances and the samples the camera model interpolates
-        grid=dict(nodes=640, rtol=1e-9, atol=1e-13, sample_dt=1e-4),
+        # Richardson's extrapolation of 640 and 1280 edges (the scheme is second order: from 320
+        # to 640 and 640 to 1280 edges the tip moved by at most 0.96 and 0.24 um in x, 2.8 and
+        # 0.70 urad, a ratio of 4.001): 640 edges alone lie 0.32 um from the limit, a sixth of
+        # the camera noise but the same in every frame, which moved a fitted length by 1.9
+        # standard errors; the extrapolation's own error is some 1e-4 of that
+        grid=dict(nodes=(640, 1280), rtol=1e-9, atol=1e-13, sample_dt=1e-4),
     )
 }
 
@@ -315,18 +315,25 @@ def generate_independent(name: str, spec: dict, out_dir: Path) -> Path:
     recording and its sidecar (which points at the scene file; nothing of pcrjax's dynamics used)."""
     truth, grid = spec["truth"], spec["grid"]
     scene = pcrjax.load_scene(ROOT / spec["scene"])
-    rod = independent_rod(scene, truth, grid["nodes"])
-    fx, fz = truth["push_force"]
     t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
     span = spec["seconds"] + truth["time_offset"] + spec["exposure"] + 2 * grid["sample_dt"]
-    _, tip, nfev = rod.release((fx, fz), span, grid["sample_dt"], rtol=grid["rtol"], atol=grid["atol"])
+    tips, nfev = [], 0
+    for nodes in grid["nodes"]:
+        rod = independent_rod(scene, truth, nodes)
+        _, tip, n = rod.release(tuple(truth["push_force"]), span, grid["sample_dt"], rtol=grid["rtol"], atol=grid["atol"])
+        tips.append(tip)
+        nfev += n
+    coarse, fine = tips
+    print(f"{name}: the tip moved by up to {np.max(np.abs(fine - coarse), axis=0).tolist()} (m, m, rad) from {grid['nodes'][0]} edges")
+    tip = fine + (fine - coarse) / 3.0  # second order in the edge length
     side = dict(
         _sidecar_head(spec),
         truth=dict(truth),
         provenance=dict(
             generator="experiments_data/generate.py",
             model="experiments_data/independent_rod.py",
-            truth_nodes=grid["nodes"],
+            truth_nodes=list(grid["nodes"]),
+            truth_extrapolated="Richardson, second order in the edge length",
             truth_rtol=grid["rtol"],
             truth_atol=grid["atol"],
             rhs_evaluations=int(nfev),
@@ -360,8 +367,7 @@ def sidecar(name: str, spec: dict) -> dict:
     )
     if "truth_solver" in spec:  # the truth simulated on another grid than the fit's
         side["provenance"].update(truth_nodes=spec["truth_solver"]["nodes"], truth_dt=spec["truth_solver"]["dt"])
-        if spec["experiment"] in EXTRAPOLATED:
-            side["provenance"]["truth_extrapolated_from_dt"] = [2 * spec["truth_solver"]["dt"], spec["truth_solver"]["dt"]]
+        side["provenance"]["truth_extrapolated_from_dt"] = [2 * spec["truth_solver"]["dt"], spec["truth_solver"]["dt"]]
     return side
 
 
@@ -388,7 +394,7 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
     s = experiment.apply(scene, params)
     traj = pcrjax.simulate(s, progress=True)
     samples, dt = experiment.planar_pose(s, traj), float(s.solver.dt)
-    if "truth_solver" in spec and spec["experiment"] in EXTRAPOLATED:
+    if "truth_solver" in spec:
         coarse = pcrjax.with_solver(s, dt=2 * dt)
         twice = np.asarray(experiment.planar_pose(coarse, pcrjax.simulate(coarse, progress=True)))
         fine = np.asarray(samples)[::2][: twice.shape[0]]

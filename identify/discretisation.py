@@ -45,9 +45,9 @@ grids (zero only where the chain is exactly second order; it then bounds the err
 coarser extrapolation, an order above the last move). It is used where it is below the last
 move, and it is what the time chain must bring below a third of a standard error. On
 `cantilever_independent` (another code's converged recording; fit at N 20, dt 1 ms) the length's
-time moves were 299, 76 and 19 standard errors down to dt 0.125 ms, at observed order 2.00:
-the finest grid's length lies 4.3 standard errors from the truth, the extrapolation 2.1, with an
-extrapolation error of 0.01; reaching a third of one by halving alone would take dt near 10 us.
+time moves were 288 and 73 standard errors down to dt 0.25 ms, at observed order 1.98: the
+finest grid's length lies 24 standard errors from the truth, the extrapolation (space
+extrapolated too) 0.22; reaching a third of one by halving alone would take dt near 10 us.
 
 **Extrapolation in space.** RK4 is fourth order in the nodes, so where the last two space moves
 shrink at that order (within ``ORDER_BAND`` of 4) the coarser grid's space error is 16 m2 / 15
