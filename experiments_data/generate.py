@@ -324,7 +324,9 @@ def generate_independent(name: str, spec: dict, out_dir: Path) -> Path:
         tips.append(tip)
         nfev += n
     coarse, fine = tips
-    print(f"{name}: the tip moved by up to {np.max(np.abs(fine - coarse), axis=0).tolist()} (m, m, rad) from {grid['nodes'][0]} edges")
+    print(
+        f"{name}: the tip moved by up to {np.max(np.abs(fine - coarse), axis=0).tolist()} (m, m, rad) from {grid['nodes'][0]} edges"
+    )
     tip = fine + (fine - coarse) / 3.0  # second order in the edge length
     side = dict(
         _sidecar_head(spec),

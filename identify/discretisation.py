@@ -65,15 +65,24 @@ Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian, 
 only where it lowers the cost), so an iteration costs one rollout of the window and no tangents.
 Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, then takes the
 finer model's own where they stopped: the refit ends there if its Gauss-Newton decrement puts
-the parameters within ``STILL`` standard errors of the optimum, else goes on holding it. The
+the parameters within ``STILL`` standard errors of the optimum, else goes on by
+Levenberg-Marquardt with the finer model's Jacobian at every step, up to ``REFRESH`` Jacobians
+in all, and a refit that stops farther than ``STILL`` from its optimum is reported. The
 coarse Jacobian held to the end would stop at its own fixed point (J_held^T r = 0), which is
 the finer grid's optimum only where the two grids' Jacobians agree, and where a finer dt moves
 the phase of a long recording's modes they do not: on `triskele_push_release_r1` from dt 0.25
 to 0.125 ms (20 nodes) the held chord crawled through 40 iterations (81 rollouts, 254 s) to a
-point the finer model's Jacobian put 0.47 standard errors from its optimum (decrement 0.73);
-5 held iterations, the finer Jacobian (about 12 rollouts' time) and 4 more came to within 0.055
-(decrement 0.0032) in 121 s, at a loss 0.74 lower. On the fit's own grid (the tolerance refit)
-the fit's Jacobian is the model's and is held throughout. A later refit of a chain starts where
+point the finer model's Jacobian put 0.47 standard errors from its optimum (decrement 0.73).
+Holding the finer model's Jacobian once taken is no cure either: a recording's residuals are
+its noise, whose curvature term (sum r_i Hess r_i, `least_squares.levenberg_marquardt`) is as
+large as the Gauss-Newton curvature along the nearly collinear unknowns, so each held Jacobian's
+fixed point lies only part of the way to the optimum. On `triskele_actuator_step_r2` at 40
+nodes (dt 0.5 ms) the refit that took one Jacobian and held it stopped 0.20 standard errors (in
+the decrement's metric) from its optimum, where its move from 20 nodes was 0.64 and RK4's
+order put the next at 0.04; holding each of three Jacobians in turn came to 0.20, 0.13 and
+0.09, a Jacobian at every step with the curvature's secant estimate to 0.084 and 0.040 (four
+Jacobians in all). On the fit's own grid (the tolerance refit) the fit's Jacobian is the
+model's and is held throughout. A later refit of a chain starts where
 the chain's order predicts the optimum (the last move shrunk by 2**order) and fits the whole
 recording at once, falling back to the windows from the coarser optimum if that fails. A refit
 that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it
@@ -123,7 +132,7 @@ THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligi
 TOL_FACTOR = 0.1
 CHORD_ITER = 20  # Levenberg-Marquardt iterations per window
 HELD_ITER = 5  # iterations over the whole recording with the fit's Jacobian, before the refined model's own
-REFRESH = 1  # the refined model's Jacobians a refit takes over the whole recording, at most
+REFRESH = 4  # the refined model's Jacobians a refit takes over the whole recording, at most
 STILL = 0.05  # a refit ends when its linearisation puts the parameters this many standard errors from its optimum
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
@@ -176,6 +185,7 @@ class Level:
     problem: object = dataclasses.field(repr=False, compare=False, default=None)
     parent: int | None = None
     jacobians: int = 0
+    distance: float | None = None  # from this model's optimum, in standard errors (the decrement's; None: not measured)
 
     def to_json(self) -> dict:
         return dict(
@@ -188,6 +198,7 @@ class Level:
             noise=[float(self.noise[0]), float(self.noise[2])],
             chord_iterations=self.iterations,
             jacobians=self.jacobians,
+            distance_to_optimum_se=self.distance,
             wall_s=round(self.wall_s, 1),
             values={} if self.problem is None else _plain(self.problem.reported(self.theta)),
         )
@@ -231,16 +242,18 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
 
 
 def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH):
-    """(theta, residuals, iterations, Jacobians) minimising ``problem``'s residuals over the whole
-    recording from ``theta``. Over the windows ending at ``window_ends`` before the last (the
-    fit's continuation: a coarse grid's answer can be cycles of phase off over a long recording,
-    as the Triskele's 150 Hz modes are at dt 0.5 ms), each from the previous one's answer, the
-    Jacobian ``J`` (of another discretisation of the same problem) is held; over the whole
-    recording too, for ``HELD_ITER`` iterations. Then the refined model's own Jacobian is taken
-    and held, while its Gauss-Newton decrement puts the parameters more than ``STILL`` standard
-    errors from the optimum, up to ``refresh`` times (0: ``J`` held to the end). Raises
-    `FitError` where the refined model's rollout fails."""
-    total, jacobians = 0, 0
+    """(theta, residuals, iterations, Jacobians, distance) minimising ``problem``'s residuals over
+    the whole recording from ``theta``. Over the windows ending at ``window_ends`` before the
+    last (the fit's continuation: a coarse grid's answer can be cycles of phase off over a long
+    recording, as the Triskele's 150 Hz modes are at dt 0.5 ms), each from the previous one's
+    answer, the Jacobian ``J`` (of another discretisation of the same problem) is held; over the
+    whole recording too, for ``HELD_ITER`` iterations. Then the refined model's own Jacobian is
+    taken, and while its Gauss-Newton decrement puts the parameters more than ``STILL`` standard
+    errors from the optimum, Levenberg-Marquardt goes on with the refined model's Jacobian at
+    every step, ``refresh`` Jacobians in all (0: ``J`` held to the end). ``distance``: that
+    decrement as standard errors, sqrt(2 decrement), at the answer (None where ``J`` was held
+    to the end). Raises `FitError` where the refined model's rollout fails."""
+    total = 0
     for t_end in window_ends[:-1]:
         theta, _, it = _held(problem, theta, J, t_end, max_iter)
         total += it
@@ -248,32 +261,41 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     # the held Jacobian first (cheap iterations, where it is close), then the model's own
     theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still)
     total += it
-    for _ in range(refresh):
-        r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
+    if not refresh:
+        return theta, r, total, 0, None
+    r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
+    jacobians = 1
+
+    def own(x):
+        nonlocal jacobians
         jacobians += 1
-        if decrement(J, r) < still:
-            break
-        theta, r, it = _held(problem, theta, J, None, max_iter, still, r)
-        total += it
-    return theta, r, total, jacobians
+        return problem.residual_and_jacobian(x)
+
+    # each accepted step takes the model's Jacobian again, so that the secant estimate of the
+    # noise's curvature term builds up and the steps head for the optimum itself
+    theta, J, r, it, _, _ = levenberg_marquardt(
+        problem.residual, own, theta, refresh - 1, ftol=still / max(0.5 * float(r @ r), 1e-300),
+        max_step=problem.max_step, initial=(r, J), lam0=1e-9,
+    )  # fmt: skip
+    return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r)))
 
 
 def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
-    """(theta, residuals, iterations, Jacobians) of the first `chord_refit` of ``fine`` from
+    """(theta, residuals, iterations, Jacobians, distance) of the first `chord_refit` of ``fine`` from
     ``tries`` ((start, window ends), in order) that ends within ``WORSE`` times the fit's
     reduced chi-square ``chi2`` (``m`` degrees of freedom); raises `FitError` saying why the
     last did not (a finer model that fits far worse than the coarse one: a wrong minimum)."""
     iterations = jacobians = 0
     for start, ends in tries:
         try:
-            th, r, it, jac = chord_refit(fine, start, J, ends, refresh=refresh)
+            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh)
         except FitError as e:
             why = f"failed ({e})"
             continue
         iterations, jacobians = iterations + it, jacobians + jac
         cost = 0.5 * float(r @ r)
         if 2 * cost / max(m, 1) <= WORSE * chi2:
-            return th, r, iterations, jacobians
+            return th, r, iterations, jacobians, distance
         why = (
             f"reached a reduced chi-square of {2 * cost / max(m, 1):.3g} against the fit's {chi2:.3g}: it did not find that "
             "model's optimum"
@@ -322,15 +344,20 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         # tolerance) the fit's Jacobian is the model's
         tries = ([(predicted, (None,))] if predicted is not None else []) + [(base, windows)]
         try:
-            th, r, iterations, jacobians = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
+            th, r, iterations, jacobians, distance = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} {e}, so its {what} error is not measured")
             return None
         noise, se = noise_and_errors(problem, J, fine, r, theta.size)
         levels.append(
             Level(what, n, h, tl, th, (th - base) / se, float(r @ r) / max(m, 1), iterations, time.perf_counter() - t0, noise, se,
-                  fine, parent, jacobians)
+                  fine, parent, jacobians, distance)
         )  # fmt: skip
+        if distance is not None and distance > STILL:
+            notes.append(
+                f"the refit with {n} nodes, dt {h:.3g} s stopped {distance:.2g} standard errors from that model's optimum after "
+                f"{jacobians} Jacobians (its move is uncertain by as much)"
+            )
         say(f"  largest move {np.max(np.abs(levels[-1].move_se)):.3g} SE, reduced chi-square {levels[-1].chi2:.4g}")
         return levels[-1]
 
@@ -402,7 +429,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends) -> boo
     # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
     tries = [(start, (None,))] + ([(start, window_ends)] if len(window_ends) > 1 else [])
     try:
-        th, r, it, jac = _attempt(fine, tries, held, m, chi2)
+        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2)
     except FitError as e:
         notes.append(f"the refit from the start on the finest grid {e}")
         return False
@@ -431,7 +458,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends) -> boo
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, r, it, jac = _attempt(coarser, [(coarse[-1].theta, (None,))], held, m, chi2)
+            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,))], held, m, chi2)
         except FitError as e:
             notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False

@@ -35,6 +35,7 @@ def levenberg_marquardt(
     save=None,
     progress=None,
     initial=None,
+    lam0: float = 1e-3,
 ):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
@@ -59,9 +60,9 @@ def levenberg_marquardt(
     typical units), a trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
     state that ``save`` was given) resumes an interrupted run; ``save(state)`` is called after
     every accepted step; ``initial``, ``rj(theta0)`` if already known. Returns (theta, J, r,
-    iterations, converged, history)."""
+    iterations, converged, history). ``lam0``: the first damping (small: the first step Gauss-Newton's)."""
     theta = np.asarray(theta0, float)
-    lam, history, it0, S = 1e-3, [], 0, np.zeros((theta.size, theta.size))
+    lam, history, it0, S = lam0, [], 0, np.zeros((theta.size, theta.size))
     if start is not None:
         theta, lam, history, it0 = np.asarray(start["theta"], float), start["lam"], list(start["history"]), start["iteration"]
         S = np.asarray(start.get("secant", S), float)
