@@ -67,26 +67,25 @@ Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, th
 finer model's own where they stopped: the refit ends there if its Gauss-Newton decrement puts
 the parameters within ``STILL`` standard errors of the optimum, else goes on by
 Levenberg-Marquardt with the finer model's Jacobian at every step, up to ``REFRESH`` Jacobians
-in all, and a refit that stops farther than ``STILL`` from its optimum is reported. The
-coarse Jacobian held to the end would stop at its own fixed point (J_held^T r = 0), which is
-the finer grid's optimum only where the two grids' Jacobians agree, and where a finer dt moves
-the phase of a long recording's modes they do not: on `triskele_push_release_r1` from dt 0.25
-to 0.125 ms (20 nodes) the held chord crawled through 40 iterations (81 rollouts, 254 s) to a
-point the finer model's Jacobian put 0.47 standard errors from its optimum (decrement 0.73).
-Holding the finer model's Jacobian once taken is no cure either: a recording's residuals are
-its noise, whose curvature term (sum r_i Hess r_i, `least_squares.levenberg_marquardt`) is as
-large as the Gauss-Newton curvature along the nearly collinear unknowns, so each held Jacobian's
-fixed point lies only part of the way to the optimum. On `triskele_actuator_step_r2` at 40
-nodes (dt 0.5 ms) the refit that took one Jacobian and held it stopped 0.20 standard errors (in
-the decrement's metric) from its optimum, where its move from 20 nodes was 0.64 and RK4's
-order put the next at 0.04; holding each of three Jacobians in turn came to 0.20, 0.13 and
-0.09, a Jacobian at every step with the curvature's secant estimate to 0.084 and 0.040 (four
-Jacobians in all). On the fit's own grid (the tolerance refit) the fit's Jacobian is the
-model's and is held throughout. A later refit of a chain starts where
-the chain's order predicts the optimum (the last move shrunk by 2**order) and fits the whole
-recording at once, falling back to the windows from the coarser optimum if that fails. A refit
-that ends at a reduced chi-square more than ``WORSE`` times the fit's found no optimum: it
-is reported as failed and its values are not used.
+in all, and a refit that stops farther than ``STILL`` from its optimum is reported. The coarse
+Jacobian held to the end would stop at its own fixed point (J_held^T r = 0), which is the finer
+grid's optimum only where the two grids' Jacobians agree, and where a finer dt moves the phase
+of a long recording's modes they do not: on `triskele_push_release_r1` from dt 0.25 to 0.125 ms
+(20 nodes) the held chord crawled through 40 iterations (81 rollouts, 254 s) to a point the
+finer model's Jacobian put 0.47 standard errors from its optimum (decrement 0.73). Holding the
+finer model's Jacobian once taken is no cure either: a recording's residuals are its noise,
+whose curvature term (sum r_i Hess r_i, `least_squares.levenberg_marquardt`) is as large as the
+Gauss-Newton curvature along the nearly collinear unknowns, so each held Jacobian's fixed point
+lies only part of the way to the optimum. On `triskele_actuator_step_r2` at 40 nodes (dt 0.5 ms)
+the refit that took one Jacobian and held it stopped 0.20 standard errors (in the decrement's
+metric) from its optimum, where its move from 20 nodes was 0.64 and RK4's order put the next at
+0.04; holding each of three Jacobians in turn came to 0.20, 0.13 and 0.09, a Jacobian at every
+step with the curvature's secant estimate to 0.084 and 0.040 (four Jacobians in all). On the
+fit's own grid (the tolerance refit) the fit's Jacobian is the model's and is held throughout. A
+later refit of a chain starts where the chain's order predicts the optimum (the last move shrunk
+by 2**order) and fits the whole recording at once, falling back to the windows from the coarser
+optimum if that fails. A refit that ends at a reduced chi-square more than ``WORSE`` times the
+fit's found no optimum: it is reported as failed and its values are not used.
 
 **The internal grid.** pcrjax refines a rod's internal grid (``solver.grid_nodes``, nodes times
 ``solver.refine``) as dt shrinks, to resolve the dynamic step's boundary layer: the cantilever
