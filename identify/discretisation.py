@@ -90,8 +90,11 @@ fit's found no optimum: it is reported as failed and its values are not used.
 **The internal grid.** pcrjax refines a rod's internal grid (``solver.grid_nodes``, nodes times
 ``solver.refine``) as dt shrinks, to resolve the dynamic step's boundary layer: the cantilever
 at 20 nodes runs on 40 from dt 0.25 ms, the Triskele at 10 nodes on 20 from dt 62.5 us. A time
-refit whose internal grid is finer than its parent's measured a space move too (and an
-extrapolation in dt through it extrapolates that as well); the notes say so.
+refit whose internal grid is finer than its parent's measured a space move too; the notes say
+so. Where the space chain settled by extrapolation, its estimate of the space error left at the
+time chain's nodes, scaled to each level's internal grid at RK4's order, is added to every
+time level's values before their moves are taken, so that move is taken out and the correction
+is counted once (added unscaled, it would be counted twice).
 
 **Rival basins.** The fit's grid can prefer another basin of the loss than finer grids do, and
 the chains, each refit starting from the coarser answer, then converge cleanly to the wrong one.
@@ -368,6 +371,14 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
     if refit("tolerance", nodes, dt, base, (None,), None) is None:
         return levels, notes
     n, h, parent = nodes, dt, None  # the grid refinements start from the fit's own optimum
+    # the space error left at the time chain's nodes, where the space chain settled by
+    # extrapolation (theta; zero else), on their internal grid of ``g0`` nodes: RK4's order
+    # scales it to a finer internal grid, which a time refit can bring (`report` does the same)
+    space_error, g0 = np.zeros_like(base), None
+
+    def left(i):
+        return space_error if g0 is None else space_error * (g0 / grid(i)) ** ORDER["space"]
+
     for what in ("space", "time"):
         step, prev = None, None  # the chain's last move (theta) and its last level
         for _ in range(max_levels):
@@ -376,18 +387,28 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             if lv is None:
                 return levels, notes
             if what == "time" and grid(len(levels) - 1) != grid(parent):
+                # the time move without the space move it holds: the values corrected for the
+                # space error left on each grid
+                lv = levels[-1] = dataclasses.replace(
+                    lv, move_se=(lv.theta + left(len(levels) - 1) - base - left(parent)) / lv.se
+                )
                 notes.append(
                     f"the time refit to dt {lv.dt:.3g} s also refined the internal grid from {grid(parent)} to "
                     f"{grid(len(levels) - 1)} nodes (pcrjax resolves the dynamic step's boundary layer, which narrows as dt "
                     "shrinks), so its move holds a space refinement too"
+                    + (", taken out by the space extrapolation's estimate" if g0 is not None else "")
                 )
             settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
+            usable = False
             if prev is not None:
                 usable, error = extrapolation(prev, lv, problem.measured)
                 settled = settled or (usable and np.max(error[problem.measured]) <= THIRD)
             prev = lv
             # the coarser grid's space error is this move (or its extrapolation): time refines there
             if settled and what == "space":
+                if usable:
+                    k = 2.0 ** ORDER["space"]
+                    space_error, g0 = (lv.theta - base) * k / (k - 1.0), grid(parent)
                 break
             n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
@@ -516,13 +537,25 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
             values[i] = levels[i].problem.reported(levels[i].theta)
         return values[i]
 
+    def grid(i):
+        return (problem if i is None else levels[i].problem).scene.solver.grid_nodes
+
     moved, notes = {}, []
-    final = reported(len(levels) - 1)
+    final = None  # the values reported: the time chain's last, or their extrapolation to dt 0
     correction = {}  # the space extrapolation's, to the values of the time chain's coarser nodes
+    g0 = grid(levels[chains["time"][0]].parent)  # their internal grid
+
+    def corrected(i):
+        """Level ``i``'s values plus the space error left on its internal grid (RK4's order
+        scales the correction from the time chain's base grid to a finer one)."""
+        scale = (g0 / grid(i)) ** ORDER["space"]
+        return {key: np.asarray(v) + scale * correction.get(key, 0.0) for key, v in reported(i).items()}
+
     model = {}
     for what, idx in chains.items():
         last = levels[idx[-1]]
-        moved[what] = _difference(reported(idx[-1]), reported(last.parent))
+        at = corrected if what == "time" else reported  # the space chain ran before the correction existed
+        moved[what] = _difference(at(idx[-1]), at(last.parent))
         moves = np.where(problem.measured, in_final_se(last, np.abs(last.move_se)), 0.0)
         # Richardson from the last two moves: in time, to the finest dt's values; in space, where
         # time refined at the coarser nodes of the last space move, as a correction to them
@@ -532,7 +565,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
             usable, error = extrapolation(levels[idx[-2]], last, problem.measured)
             if usable:
                 k = 2.0 ** ORDER[what]
-                v0, v1, v2 = reported(levels[idx[-2]].parent), reported(idx[-2]), reported(idx[-1])
+                v0, v1, v2 = at(levels[idx[-2]].parent), at(idx[-2]), at(idx[-1])
                 m1 = {key: np.asarray(v1[key]) - np.asarray(v0[key]) for key in v2}
                 m2 = {key: np.asarray(v2[key]) - np.asarray(v1[key]) for key in v2}
                 if what == "time":
@@ -561,7 +594,8 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                 f"the last {how} (more than {THIRD:.2f}): the {what} discretisation error is not negligible; a finer "
                 f"[solver] {finer} in the sidecar (or more --refine levels) would settle it"
             )
-    final = {key: np.asarray(v) + correction.get(key, 0.0) for key, v in final.items()}
+    if final is None:
+        final = corrected(len(levels) - 1)
     message = _sentences([message, *notes])
     return dataclasses.replace(
         rescaled,
