@@ -554,7 +554,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     model = {}
     for what, idx in chains.items():
         last = levels[idx[-1]]
-        at = corrected if what == "time" else reported  # the space chain ran before the correction existed
+        at = corrected if what == "time" else reported  # the time chain's values carry the space correction
         moved[what] = _difference(at(idx[-1]), at(last.parent))
         moves = np.where(problem.measured, in_final_se(last, np.abs(last.move_se)), 0.0)
         # Richardson from the last two moves: in time, to the finest dt's values; in space, where
