@@ -372,6 +372,19 @@ class FourthOrderSpace(SecondOrder):
         return FourthOrderSpace(nodes, dt)
 
 
+def _report(coarse):
+    """(`discretisation.report` of the fit on ``coarse`` with up to 6 refinements per chain, the
+    fit's standard errors)."""
+    from identify.result import Result
+
+    theta, chi2, se = _start(coarse)
+    result = Result(
+        labels=coarse.labels(), values=coarse.reported(theta), standard_errors={"a": se[:2].tolist(), "b": float(se[2])},
+        correlation=[], sigma=[SIGMA, SIGMA], loss=chi2, rms=[],
+    )  # fmt: skip
+    return discretisation.report(coarse, theta, coarse.A / SIGMA, result, max_levels=6), se
+
+
 def test_space_moves_at_rk4s_order_are_extrapolated_and_time_refines_at_the_coarser_nodes():
     """Space moves of 45, 6.2 and 0.45 SE (the last still above a third, as on the random-truth
     Triskele push-release): they shrink at order 4, so the space error is extrapolated from the
@@ -379,15 +392,7 @@ def test_space_moves_at_rk4s_order_are_extrapolated_and_time_refines_at_the_coar
     the coarser 40 nodes instead of 80, and the values lie within their reported error of the
     optimum at infinitely many nodes and dt 0, which the 40-node values alone miss by more than
     a third of an SE."""
-    from identify.result import Result
-
-    coarse = FourthOrderSpace(10, 0.1)
-    theta, chi2, se = _start(coarse)
-    result = Result(
-        labels=coarse.labels(), values=coarse.reported(theta), standard_errors={"a": se[:2].tolist(), "b": float(se[2])},
-        correlation=[], sigma=[SIGMA, SIGMA], loss=chi2, rms=[],
-    )  # fmt: skip
-    rep = discretisation.report(coarse, theta, coarse.A / SIGMA, result, max_levels=6)
+    rep, se = _report(FourthOrderSpace(10, 0.1))
     space = [r for r in rep.refinements if r["refit"] == "space"]
     times = [r for r in rep.refinements if r["refit"] == "time"]
     assert [r["nodes"] for r in space] == [20, 40, 80] and space[-1]["largest_move_se"] > 1 / 3
@@ -425,15 +430,7 @@ def test_a_time_refit_on_a_finer_internal_grid_has_the_space_move_it_holds_taken
     add again. Scaled to each level's internal grid (RK4's order), the correction is counted
     once and the values lie within their reported error of the limit (counted twice, b missed
     it by 0.38 SE against an error of 0.14)."""
-    from identify.result import Result
-
-    coarse = RefiningGrid(10, 0.1)
-    theta, chi2, se = _start(coarse)
-    result = Result(
-        labels=coarse.labels(), values=coarse.reported(theta), standard_errors={"a": se[:2].tolist(), "b": float(se[2])},
-        correlation=[], sigma=[SIGMA, SIGMA], loss=chi2, rms=[],
-    )  # fmt: skip
-    rep = discretisation.report(coarse, theta, coarse.A / SIGMA, result, max_levels=6)
+    rep, se = _report(RefiningGrid(10, 0.1))
     times = [r for r in rep.refinements if r["refit"] == "time"]
     assert {r["nodes"] for r in times} == {40} and min(r["dt"] for r in times) < 0.03
     assert "taken out by the space extrapolation's estimate" in rep.message, rep.message
