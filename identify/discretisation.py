@@ -206,6 +206,17 @@ class Level:
         )
 
 
+def _grid(problem, levels, i) -> int:
+    """The internal grid's nodes of level ``i`` of ``levels`` (None: the fit ``problem``'s)."""
+    return (problem if i is None else levels[i].problem).scene.solver.grid_nodes
+
+
+def _left_on(g0, g) -> float:
+    """The fraction of the space error left on an internal grid of ``g0`` nodes that is left on
+    one of ``g`` (RK4's order)."""
+    return (g0 / g) ** ORDER["space"]
+
+
 def _plain(values: dict) -> dict:
     """Reported values as JSON numbers (scalars as floats, vectors as lists)."""
     out = {}
@@ -364,8 +375,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         return levels[-1]
 
     def grid(i):
-        """The internal grid's nodes of level ``i`` (None: the fit's)."""
-        return (problem if i is None else levels[i].problem).scene.solver.grid_nodes
+        return _grid(problem, levels, i)
 
     base = np.asarray(theta, float)
     if refit("tolerance", nodes, dt, base, (None,), None) is None:
@@ -377,7 +387,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
     space_error, g0 = np.zeros_like(base), None
 
     def left(i):
-        return space_error if g0 is None else space_error * (g0 / grid(i)) ** ORDER["space"]
+        return space_error if g0 is None else space_error * _left_on(g0, grid(i))
 
     for what in ("space", "time"):
         step, prev = None, None  # the chain's last move (theta) and its last level
@@ -538,7 +548,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         return values[i]
 
     def grid(i):
-        return (problem if i is None else levels[i].problem).scene.solver.grid_nodes
+        return _grid(problem, levels, i)
 
     moved, notes = {}, []
     final = None  # the values reported: the time chain's last, or their extrapolation to dt 0
@@ -548,7 +558,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     def corrected(i):
         """Level ``i``'s values plus the space error left on its internal grid (RK4's order
         scales the correction from the time chain's base grid to a finer one)."""
-        scale = (g0 / grid(i)) ** ORDER["space"]
+        scale = _left_on(g0, grid(i))
         return {key: np.asarray(v) + scale * correction.get(key, 0.0) for key, v in reported(i).items()}
 
     model = {}

@@ -360,16 +360,22 @@ Q4, Q6 = 0.03 * np.random.default_rng(8).standard_normal((2, UNKNOWNS, UNKNOWNS)
 
 class FourthOrderSpace(SecondOrder):
     """`SecondOrder` with RK4's order in space: the grid's operator is ``A0 (I + Q4 x^4 + Q6 x^6 +
-    P_T2 dt^2 + P_T3 dt^3)``, x = 10 / nodes; the optimum at infinitely many nodes and dt 0 is
-    A0's least-squares solution."""
+    P_T2 dt^2 + P_T3 dt^3)``, x = 10 / the internal grid's nodes (`internal_grid`: the nodes); the
+    optimum at infinitely many nodes and dt 0 is A0's least-squares solution."""
 
     def __init__(self, nodes, dt, offset=lambda dt: 0.0):
         super().__init__(nodes, dt, offset)
-        x = 10.0 / nodes
+        self.scene.solver.grid_nodes = self.internal_grid(nodes, dt)
+        x = 10.0 / self.scene.solver.grid_nodes
         self.A = A0 @ (np.eye(UNKNOWNS) + Q4 * x**4 + Q6 * x**6 + P_T2 * dt**2 + P_T3 * dt**3)
 
+    @staticmethod
+    def internal_grid(nodes, dt):
+        """The nodes the space error follows (pcrjax's ``solver.grid_nodes``)."""
+        return nodes
+
     def refined(self, nodes, dt, tol):
-        return FourthOrderSpace(nodes, dt)
+        return type(self)(nodes, dt)
 
 
 def _report(coarse):
@@ -412,15 +418,9 @@ class RefiningGrid(FourthOrderSpace):
     """`FourthOrderSpace` whose internal grid doubles below dt 0.03, as pcrjax's does when the
     dynamic step's boundary layer narrows: the space error follows the internal grid."""
 
-    def __init__(self, nodes, dt, offset=lambda dt: 0.0):
-        super().__init__(nodes, dt, offset)
-        grid = nodes * (2 if dt < 0.03 else 1)
-        self.scene.solver.grid_nodes = grid
-        x = 10.0 / grid
-        self.A = A0 @ (np.eye(UNKNOWNS) + Q4 * x**4 + Q6 * x**6 + P_T2 * dt**2 + P_T3 * dt**3)
-
-    def refined(self, nodes, dt, tol):
-        return RefiningGrid(nodes, dt)
+    @staticmethod
+    def internal_grid(nodes, dt):
+        return nodes * (2 if dt < 0.03 else 1)
 
 
 def test_a_time_refit_on_a_finer_internal_grid_has_the_space_move_it_holds_taken_out():
