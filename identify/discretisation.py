@@ -91,10 +91,15 @@ fit's found no optimum: it is reported as failed and its values are not used.
 ``solver.refine``) as dt shrinks, to resolve the dynamic step's boundary layer: the cantilever
 at 20 nodes runs on 40 from dt 0.25 ms, the Triskele at 10 nodes on 20 from dt 62.5 us. A time
 refit whose internal grid is finer than its parent's measured a space move too; the notes say
-so. Where the space chain settled by extrapolation, its estimate of the space error left at the
-time chain's nodes, scaled to each level's internal grid at RK4's order, is added to every
-time level's values before their moves are taken, so that move is taken out and the correction
-is counted once (added unscaled, it would be counted twice).
+so. Where the space chain settled, its estimate of the space error left at the time chain's
+nodes (the extrapolation's, or its last move's at RK4's order), scaled to each level's internal
+grid at that order, is added to every time level's values before their moves are taken, so
+that move is taken out. An extrapolated correction stays in the reported values and is counted
+once (added unscaled, it would be counted twice); an estimate from a last move alone (one below a
+third of an SE) only takes the space part out of the time moves, and the values keep the space
+error of the finest internal grid, which the reported space move bounds. On
+`triskele_push_release_r1` the space chain settled at its first refit (0.23 SE) and the time
+chain's internal grid doubled at dt 62.5 us: that move held 15/16 of the 10-node space error.
 
 **Rival basins.** The fit's grid can prefer another basin of the loss than finer grids do, and
 the chains, each refit starting from the coarser answer, then converge cleanly to the wrong one.
@@ -381,9 +386,10 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
     if refit("tolerance", nodes, dt, base, (None,), None) is None:
         return levels, notes
     n, h, parent = nodes, dt, None  # the grid refinements start from the fit's own optimum
-    # the space error left at the time chain's nodes, where the space chain settled by
-    # extrapolation (theta; zero else), on their internal grid of ``g0`` nodes: RK4's order
-    # scales it to a finer internal grid, which a time refit can bring (`report` does the same)
+    # the space error left at the time chain's nodes, where the space chain settled (theta: its
+    # last move or that move's extrapolation, at RK4's order; zero where it did not settle), on
+    # their internal grid of ``g0`` nodes: RK4's order scales it to a finer internal grid, which a
+    # time refit can bring (`report` does the same)
     space_error, g0 = np.zeros_like(base), None
 
     def left(i):
@@ -406,7 +412,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
                     f"the time refit to dt {lv.dt:.3g} s also refined the internal grid from {grid(parent)} to "
                     f"{grid(len(levels) - 1)} nodes (pcrjax resolves the dynamic step's boundary layer, which narrows as dt "
                     "shrinks), so its move holds a space refinement too"
-                    + (", taken out by the space extrapolation's estimate" if g0 is not None else "")
+                    + (", taken out by the space chain's estimate of it" if g0 is not None else "")
                 )
             settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
             usable = False
@@ -416,9 +422,8 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             prev = lv
             # the coarser grid's space error is this move (or its extrapolation): time refines there
             if settled and what == "space":
-                if usable:
-                    k = 2.0 ** ORDER["space"]
-                    space_error, g0 = (lv.theta - base) * k / (k - 1.0), grid(parent)
+                k = 2.0 ** ORDER["space"]
+                space_error, g0 = (lv.theta - base) * k / (k - 1.0), grid(parent)
                 break
             n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
@@ -515,8 +520,12 @@ def _sentences(parts) -> str:
     return " ".join(p if p.endswith(".") else p + "." for p in (p.strip() for p in parts) if p)
 
 
+def _change(a: dict, b: dict) -> dict:
+    return {k: np.asarray(b[k]) - np.asarray(a[k]) for k in a}
+
+
 def _difference(a: dict, b: dict) -> dict:
-    return {k: np.abs(np.asarray(a[k]) - np.asarray(b[k])) for k in a}
+    return {k: np.abs(v) for k, v in _change(b, a).items()}
 
 
 def report(problem, theta, J, result, max_levels: int = 2, progress=None, window_ends=(None,), rivals=()):
@@ -552,13 +561,16 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
 
     moved, notes = {}, []
     final = None  # the values reported: the time chain's last, or their extrapolation to dt 0
-    correction = {}  # the space extrapolation's, to the values of the time chain's coarser nodes
-    g0 = grid(levels[chains["time"][0]].parent)  # their internal grid
+    # the space chain's estimate of the space error of the time chain's coarser nodes (where it
+    # settled there), on their internal grid g0, and the part of it the reported values keep: none
+    # where it is an extrapolation, else the part left on the time chain's finest internal grid
+    correction, kept = {}, 0.0
+    g0 = grid(levels[chains["time"][0]].parent)
 
     def corrected(i):
         """Level ``i``'s values plus the space error left on its internal grid (RK4's order
-        scales the correction from the time chain's base grid to a finer one)."""
-        scale = _left_on(g0, grid(i))
+        scales the correction from the time chain's base grid to a finer one), less the part kept."""
+        scale = _left_on(g0, grid(i)) - kept
         return {key: np.asarray(v) + scale * correction.get(key, 0.0) for key, v in reported(i).items()}
 
     model = {}
@@ -571,6 +583,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         # time refined at the coarser nodes of the last space move, as a correction to them
         values_from_coarser = what == "space" and levels[chains["time"][0]].nodes < last.nodes
         extrapolated = "extrapolated_from_dt" if what == "time" else "extrapolated_from_nodes"  # its key in `model`
+        usable = False
         if len(idx) >= 2 and (what == "time" or values_from_coarser):
             usable, error = extrapolation(levels[idx[-2]], last, problem.measured)
             if usable:
@@ -585,6 +598,10 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                 moved[what] = {key: np.abs(k * m2[key] - m1[key]) / (k - 1.0) for key in v2}
                 moves = np.where(problem.measured, in_final_se(last, error), 0.0)
                 model[extrapolated] = [levels[idx[-2]].dt, last.dt] if what == "time" else [levels[idx[-2]].nodes, last.nodes]
+        if values_from_coarser and not usable:  # settled by its last move: the estimate takes the time moves' space part out
+            k = 2.0 ** ORDER["space"]
+            correction = {key: m * k / (k - 1.0) for key, m in _change(reported(last.parent), reported(idx[-1])).items()}
+            kept = _left_on(g0, grid(chains["time"][-1]))
         worst = float(np.max(moves))
         if worst > THIRD:
             label = problem.labels()[int(np.argmax(moves))]

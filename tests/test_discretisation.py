@@ -363,11 +363,13 @@ class FourthOrderSpace(SecondOrder):
     P_T2 dt^2 + P_T3 dt^3)``, x = 10 / the internal grid's nodes (`internal_grid`: the nodes); the
     optimum at infinitely many nodes and dt 0 is A0's least-squares solution."""
 
+    SPACE = 1.0  # the size of the space terms
+
     def __init__(self, nodes, dt, offset=lambda dt: 0.0):
         super().__init__(nodes, dt, offset)
         self.scene.solver.grid_nodes = self.internal_grid(nodes, dt)
         x = 10.0 / self.scene.solver.grid_nodes
-        self.A = A0 @ (np.eye(UNKNOWNS) + Q4 * x**4 + Q6 * x**6 + P_T2 * dt**2 + P_T3 * dt**3)
+        self.A = A0 @ (np.eye(UNKNOWNS) + self.SPACE * (Q4 * x**4 + Q6 * x**6) + P_T2 * dt**2 + P_T3 * dt**3)
 
     @staticmethod
     def internal_grid(nodes, dt):
@@ -433,7 +435,7 @@ def test_a_time_refit_on_a_finer_internal_grid_has_the_space_move_it_holds_taken
     rep, se = _report(RefiningGrid(10, 0.1))
     times = [r for r in rep.refinements if r["refit"] == "time"]
     assert {r["nodes"] for r in times} == {40} and min(r["dt"] for r in times) < 0.03
-    assert "taken out by the space extrapolation's estimate" in rep.message, rep.message
+    assert "taken out by the space chain's estimate" in rep.message, rep.message
     limit = np.linalg.lstsq(A0, B, rcond=None)[0]
     got = np.append(rep.values["a"], rep.values["b"])
     err = np.append(rep.discretisation_errors["a"], rep.discretisation_errors["b"])
@@ -617,3 +619,44 @@ def test_every_refit_measures_its_move_in_the_standard_errors_of_the_true_noise(
         parent = theta if lv.parent is None else levels[lv.parent].theta
         np.testing.assert_allclose(np.abs(lv.move_se), np.abs(lv.theta - parent) / se_true, rtol=0.15, atol=1e-3)
         np.testing.assert_allclose(lv.noise, SIGMA, rtol=0.15)
+
+
+class SmallSpaceError(RefiningGrid):
+    """`RefiningGrid` with space terms 0.6 times as large: from a fit at 40 nodes, the first
+    space refit moves less than a third of an SE."""
+
+    SPACE = 0.6
+
+
+class SmallSpaceErrorFixed(FourthOrderSpace):
+    """`SmallSpaceError` on a fixed internal grid."""
+
+    SPACE = SmallSpaceError.SPACE
+
+
+def test_a_space_chain_settled_by_its_last_move_takes_the_space_part_out_of_the_time_moves():
+    """The space chain settles at its first refit (40 to 80 nodes, less than a third of an SE),
+    so the time chain runs at 40 nodes, whose internal grid doubles below dt 0.03: that refit's
+    move would hold 15/16 of the 40-node space error besides the time move. The last space move,
+    scaled at RK4's order, takes it out: that move equals the time move on a fixed grid of 80
+    nodes within twice the refits' own tolerance (``STILL``: 0.03 SE; 0.28 SE with the space
+    part left in), and the values lie within their reported error of the limit."""
+    coarse = SmallSpaceError(40, 0.1)
+    theta, chi2, se = _start(coarse)
+    levels, notes = discretisation.refine(coarse, theta, coarse.A / SIGMA, max_levels=6, chi2=chi2)
+    space = [lv for lv in levels if lv.what == "space"]
+    assert [lv.nodes for lv in space] == [80] and np.max(np.abs(space[0].move_se)) <= 1 / 3
+    times = [lv for lv in levels if lv.what == "time"]
+    assert {lv.nodes for lv in times} == {40}
+    assert any("taken out by the space chain's estimate" in n for n in notes), notes
+    model = lambda i: coarse if i is None else levels[i].problem  # noqa: E731
+    (lv,) = [lv for lv in times if lv.problem.scene.solver.grid_nodes != model(lv.parent).scene.solver.grid_nodes]
+    g = lv.problem.scene.solver.grid_nodes
+    pure = (SmallSpaceErrorFixed(g, lv.dt).optimum() - SmallSpaceErrorFixed(g, model(lv.parent).dt).optimum()) / lv.se
+    assert np.max(np.abs(lv.move_se - pure)) < 2 * discretisation.STILL, (lv.dt, lv.move_se - pure)
+    rep, se = _report(coarse)
+    assert "taken out by the space chain's estimate" in rep.message
+    limit = np.linalg.lstsq(A0, B, rcond=None)[0]
+    got = np.append(rep.values["a"], rep.values["b"])
+    err = np.append(rep.discretisation_errors["a"], rep.discretisation_errors["b"])
+    assert np.all(np.abs(got - limit) <= err + 0.05 * se), ((got - limit) / se, err / se)
