@@ -164,7 +164,8 @@ def cmd_pareto(args) -> int:
             print(f"{r['label']:<34}{err:>11}{r['wall_per_sim_s']:>14.3g}{r['compile_s']:>11.1f}{'*' if r['pareto'] else '':>7}")
         print(
             f"reference: RK4 N {ref.nodes}, dt {ref.dt:g}, observed order {ref.observed_order:.2f}, extrapolation changed it by "
-            f"{ref.extrapolation_change:.1e}, N/2 differs by {ref.spatial_change:.1e} (relative); errors below "
+            f"{ref.extrapolation_change:.1e} (remainder {ref.remainder:.1e}), N/2 differs by {ref.spatial_change:.1e} "
+            "(relative); errors below "
             f"{ref.floor:.1e} are not resolved"
         )
     if args.target_error is not None:

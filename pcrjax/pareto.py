@@ -10,19 +10,22 @@ reported apart).
 **The reference** is a Richardson extrapolation in time of the finest runs: RK4 at
 ``reference_nodes`` (spatial error of RK4 falls as N^-4, so it is below the temporal one; the
 report gives the change from N/2 to N as a bound), the scene's alpha, Newton tolerance 1e-12, at
-h, h/2 and h/4 with h = half the smallest dt of the grid. BDF-alpha is second-order for every
-alpha, but its first step is backward Euler (it starts the rates from rest, DESIGN/README), whose
-O(h) error in the rates stays in the motion after a release; the runs then carry both an O(h)
-and an O(h^2) term (observed orders 0.4-1.3 on the released cantilever at h = 2.5 ms), and the
-reference (8 x(h/4) - 6 x(h/2) + x(h))/3 removes both (error O(h^3)). The observed order
-log2(|x(h) - x(h/2)| / |x(h/2) - x(h/4)|) and the change the extrapolation made are reported.
+h, h/2, h/4 and h/8 with h the smallest dt of the grid, sampled at h. BDF-alpha is second-order
+for every alpha, but its first step is backward Euler (it starts the rates from rest,
+DESIGN/README), whose O(h) error in the rates stays in the motion after a release; the runs then
+carry both an O(h) and an O(h^2) term (observed orders 0.4-1.3 on the released cantilever at h =
+2.5 ms), and the extrapolation (8 x(k/4) - 6 x(k/2) + x(k))/3 of three runs removes both (error
+O(k^3)). The reference is that of h/2, h/4 and h/8; the one of h, h/2 and h/4 beside it gives its
+remainder (the difference of the two: the O(k^3) terms left, or more where the chain is not yet
+asymptotic). The observed order log2(|x(h/2) - x(h/4)| / |x(h/4) - x(h/8)|) and the change the
+extrapolation made are reported.
 
-**The reference's floor**: errors below it are not resolved. Where the dt chain converges
-(observed order at least 1) it is RK4's spatial error at the reference's N, the change from N/2
-over 15 (N^-4). Where it does not (undamped modes the finer steps resolve and BDF-alpha's
-damping no longer removes, or round-off growing as dt falls) the last halving's change
-|x(h/2) - x(h/4)| counts too. The front and `cheapest` count an error below the floor as the
-floor, so that settings the reference cannot tell apart are ranked by cost alone.
+**The reference's floor**: errors below it are not resolved. It is the largest of RK4's spatial
+error at the reference's N (the change from N/2 over 15, N^-4) and the extrapolation's remainder;
+where the dt chain does not converge (observed order below 1: undamped modes the finer steps
+resolve and BDF-alpha's damping no longer removes, or round-off growing as dt falls) the last
+halving's change |x(h/4) - x(h/8)| counts too. The front and `cheapest` count an error below the
+floor as the floor, so that settings the reference cannot tell apart are ranked by cost alone.
 """
 
 from __future__ import annotations
@@ -109,42 +112,50 @@ class Reference:
     extrapolation_change: float  # max |ref - x(h/4)| / displacement
     spatial_change: float  # max |x(N) - x(N/2)| / displacement at h
     seconds: float
-    last_change: float = 0.0  # max |x(h/2) - x(h/4)| / displacement
+    last_change: float = 0.0  # max |x(h/4) - x(h/8)| / displacement
+    remainder: float = 0.0  # max |ref - the extrapolation of h, h/2, h/4| / displacement
 
     @property
     def floor(self) -> float:
         """The smallest error this reference resolves (module doc)."""
-        space = self.spatial_change / 15.0
+        resolved = max(self.spatial_change / 15.0, self.remainder)
         converging = math.isfinite(self.observed_order) and self.observed_order >= 1.0
-        return space if converging else max(space, self.last_change)
+        return resolved if converging else max(resolved, self.last_change)
 
 
 def reference(scene, dts, reference_nodes: int, progress=print) -> Reference:
-    """The Richardson reference of ``scene`` on the grid h = min(dts)/2 (see the module doc)."""
+    """The Richardson reference of ``scene`` on the grid h = min(dts) (see the module doc)."""
     t_start = time.perf_counter()
-    h = min(dts) / 2.0
+    h = min(dts)
     runs = []
-    for k in (1, 2, 4):
+    for k in (1, 2, 4, 8):
         progress(f"reference: RK4 N {reference_nodes}, dt {h / k:g}")
         tr = simulate(with_solver(scene, nodes=reference_nodes, integrator="rk4", dt=h / k, tol=1e-12))
         runs.append(np.asarray(tr.position)[::k])
     coarse = simulate(with_solver(scene, nodes=max(4, reference_nodes // 2), integrator="rk4", dt=h, tol=1e-12))
-    x1, x2, x4 = runs
-    ref = (8.0 * x4 - 6.0 * x2 + x1) / 3.0  # removes the O(h) and O(h^2) terms
+    x1, x2, x4, x8 = runs
+    ref = _extrapolated(x2, x4, x8)
     amp = _amplitude(ref)
-    d12 = np.max(np.linalg.norm(x1 - x2, axis=1))
-    d24 = np.max(np.linalg.norm(x2 - x4, axis=1))
+    change = lambda a, b: float(np.max(np.linalg.norm(a - b, axis=1)))  # noqa: E731
+    d24, d48 = change(x2, x4), change(x4, x8)
     return Reference(
         t=np.arange(len(ref)) * h,
         position=ref,
         dt=h,
         nodes=reference_nodes,
-        observed_order=float(np.log2(d12 / d24)) if d24 > 0 else math.nan,
-        extrapolation_change=float(np.max(np.linalg.norm(ref - x4, axis=1)) / amp),
-        spatial_change=float(np.max(np.linalg.norm(np.asarray(coarse.position) - x1, axis=1)) / amp),
+        observed_order=float(np.log2(d24 / d48)) if d48 > 0 else math.nan,
+        extrapolation_change=change(ref, x8) / amp,
+        spatial_change=change(np.asarray(coarse.position), x1) / amp,
         seconds=time.perf_counter() - t_start,
-        last_change=float(d24 / amp),
+        last_change=d48 / amp,
+        remainder=change(ref, _extrapolated(x1, x2, x4)) / amp,
     )
+
+
+def _extrapolated(x1, x2, x4):
+    """Richardson's extrapolation of runs at k, k/2, k/4 (sampled alike) that removes their O(k)
+    and O(k^2) terms."""
+    return (8.0 * x4 - 6.0 * x2 + x1) / 3.0
 
 
 def _amplitude(p) -> float:
@@ -295,13 +306,17 @@ def write(out, scene_name: str, rows, ref: Reference, target: float | None = Non
         {
             "scene": scene_name,
             "reference": {
-                "how": "(8 x(h/4) - 6 x(h/2) + x(h))/3: Richardson in dt removing O(h) and O(h^2), RK4, Newton tol 1e-12",
+                "how": (
+                    "(8 x(h/8) - 6 x(h/4) + x(h/2))/3: Richardson in dt removing O(h) and O(h^2), RK4, Newton tol 1e-12, "
+                    "sampled at h; its remainder: the difference from the same of h, h/2, h/4"
+                ),
                 "dt_s": ref.dt,
                 "nodes": ref.nodes,
                 "observed_order": ref.observed_order,
                 "extrapolation_change": ref.extrapolation_change,
                 "spatial_change_n_half": ref.spatial_change,
                 "last_halving_change": ref.last_change,
+                "remainder": ref.remainder,
                 "floor": ref.floor,
                 "seconds": ref.seconds,
             },
