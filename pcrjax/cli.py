@@ -162,11 +162,15 @@ def cmd_pareto(args) -> int:
         for r in rows:
             err = f"{r['error']:.2e}" if r["resolved"] else f"<{ref.floor:.1e}"
             print(f"{r['label']:<34}{err:>11}{r['wall_per_sim_s']:>14.3g}{r['compile_s']:>11.1f}{'*' if r['pareto'] else '':>7}")
+        how = (
+            f"extrapolation changed it by {ref.extrapolation_change:.1e} (remainder {ref.remainder:.1e})"
+            if ref.extrapolated
+            else f"the finest run (the extrapolation's remainder {ref.remainder:.1e} exceeds its last halving's change "
+            f"{ref.last_change:.1e})"
+        )
         print(
-            f"reference: RK4 N {ref.nodes}, dt {ref.dt:g}, observed order {ref.observed_order:.2f}, extrapolation changed it by "
-            f"{ref.extrapolation_change:.1e} (remainder {ref.remainder:.1e}), N/2 differs by {ref.spatial_change:.1e} "
-            "(relative); errors below "
-            f"{ref.floor:.1e} are not resolved"
+            f"reference: RK4 N {ref.nodes}, dt {ref.dt:g}, observed order {ref.observed_order:.2f}, {how}, N/2 differs by "
+            f"{ref.spatial_change:.1e} (relative); errors below {ref.floor:.1e} are not resolved"
         )
     if args.target_error is not None:
         if best is None and args.target_error < ref.floor:
