@@ -429,12 +429,12 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             if settled:
                 break
     for start in rivals:
-        if _contest(problem, levels, notes, np.asarray(start, float), J, chi2, m, say, window_ends):
+        if _contest(problem, levels, notes, np.asarray(start, float), J, chi2, m, say, window_ends, left):
             break
     return levels, notes
 
 
-def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends) -> bool:
+def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=lambda i: 0.0) -> bool:
     """Whether ``start`` (theta: where the fit began) takes the answer over from the chain's
     (`refine`'s module text, "Rival basins"): on the finest grid its push and camera are fitted
     (`Problem.fit_linear`) and, unless it then fits more than ``WORSE`` times worse than the
@@ -442,8 +442,9 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends) -> boo
     at it; through the windows if that ends more than ``WORSE`` times worse than the fit). That
     optimum is appended as a "rival" `Level`; if its loss is below the answer's by more than
     ``CLOSE``, its time error is measured by refits at 2 and 4 times the finest dt (a "rival"
-    level at 4 dt, then two "time" levels, coarse to fine, that end the list). ``notes`` gets
-    what was found."""
+    level at 4 dt, then two "time" levels, coarse to fine, that end the list; their moves have
+    the space error ``left(i)`` on level i's internal grid taken out, as `refine`'s time moves).
+    ``notes`` gets what was found."""
     last = levels[-1]
     if last.what != "time":
         return False
@@ -504,9 +505,12 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends) -> boo
     at4, at2, at1 = coarse[2], coarse[1], coarse[0]
     levels += [
         at4,
-        dataclasses.replace(at2, what="time", move_se=(at2.theta - at4.theta) / at2.se, parent=base),
-        dataclasses.replace(at1, what="time", move_se=(at1.theta - at2.theta) / at1.se, parent=base + 1, iterations=0),
+        dataclasses.replace(at2, what="time", parent=base),
+        dataclasses.replace(at1, what="time", parent=base + 1, iterations=0),
     ]
+    for i in (base + 1, base + 2):  # their time moves, the space move of a refined internal grid taken out as in `refine`
+        lv = levels[i]
+        levels[i] = dataclasses.replace(lv, move_se=(lv.theta + left(i) - levels[lv.parent].theta - left(lv.parent)) / lv.se)
     notes.append(
         f"on the finest grid ({last.nodes} nodes, dt {last.dt:.3g} s) the basin the fit started in fits better than the one "
         f"the fit's grid led to (loss {0.5 * at1.chi2 * m:.6g} against {answer:.6g}; {moved} {np.max(np.abs(rival.move_se)):.3g} "
