@@ -198,6 +198,7 @@ class Level:
         return dict(
             refit=self.what,
             nodes=self.nodes,
+            internal_nodes=None if self.problem is None else self.problem.scene.solver.grid_nodes,
             dt=self.dt,
             tol=self.tol,
             largest_move_se=float(np.max(np.abs(self.move_se))),

@@ -492,16 +492,21 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     assert space["largest_move_se"] < 1 / 3
     assert (space["nodes"], step["nodes"], step["dt"], step2["dt"]) == (12, 6, pytest.approx(1e-3), pytest.approx(5e-4))
     # the time moves shrink at BDF-alpha's order 2 (measured: 26 and 6.0 SE), so the values are
-    # extrapolated to dt 0 from the two time refits', v2 + (v2 - v1)/3, and their time error is
+    # extrapolated to dt 0 from the two time refits', v2 + m2/3, and their time error is
     # |4 m2 - m1| / 3, each move from the fit's own values (the tolerance refit's, up to the
-    # tolerance error); the space error is the space refit's move
+    # tolerance error); the space error is the space refit's move. Where pcrjax refined a time
+    # refit's internal grid, each value is taken on the finest one first: the space move,
+    # 16/15 of it the fit grid's space error, scaled at RK4's order to each internal grid
     assert res["model"] == dict(
         nodes=6, dt=pytest.approx(5e-4), tol=step2["tol"], extrapolated_from_dt=[pytest.approx(1e-3), pytest.approx(5e-4)]
     )
     assert "values extrapolated to dt 0" in printed
     v0, v1, v2 = (r["values"]["lengths"] for r in (tol, step, step2))
+    g0, g1, g2 = (r["internal_nodes"] for r in (tol, step, step2))
+    space_error = 16 / 15 * (space["values"]["lengths"] - v0)
+    v0, v1 = ((v + ((g0 / g) ** 4 - (g0 / g2) ** 4) * space_error) for v, g in ((v0, g0), (v1, g1)))
     assert res["values"]["lengths"] == pytest.approx(v2 + (v2 - v1) / 3, rel=1e-12)
-    moves = (abs(space["values"]["lengths"] - v0), abs(4 * (v2 - v1) - (v1 - v0)) / 3)
+    moves = (abs(space["values"]["lengths"] - tol["values"]["lengths"]), abs(4 * (v2 - v1) - (v1 - v0)) / 3)
     assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.5 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
