@@ -112,7 +112,7 @@ class Reference:
     dt: float
     nodes: int
     observed_order: float
-    extrapolation_change: float  # max |ref - x(h/4)| / displacement
+    extrapolation_change: float  # max |the extrapolation - x(h/8)| / displacement
     spatial_change: float  # max |x(N) - x(N/2)| / displacement at h
     seconds: float
     last_change: float = 0.0  # max |x(h/4) - x(h/8)| / displacement
