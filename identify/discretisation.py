@@ -223,6 +223,20 @@ def _left_on(g0, g) -> float:
     return (g0 / g) ** ORDER["space"]
 
 
+def _space_error(move):
+    """The coarser grid's space error that a space refinement's ``move`` (finer less coarser)
+    measures: the error shrinks 2**4-fold per halving (RK4's order), so it is the move times 16/15."""
+    k = 2.0 ** ORDER["space"]
+    return move * k / (k - 1.0)
+
+
+def _time_move(lv, base, left, i, parent):
+    """Time refit ``lv`` (level ``i``, its parent level ``parent`` at ``base``) with its move in
+    standard errors taken without the space move of a refined internal grid: each side's values
+    corrected by the space error ``left`` on its own internal grid."""
+    return dataclasses.replace(lv, move_se=(lv.theta + left(i) - base - left(parent)) / lv.se)
+
+
 def _plain(values: dict) -> dict:
     """Reported values as JSON numbers (scalars as floats, vectors as lists)."""
     out = {}
@@ -406,9 +420,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             if what == "time" and grid(len(levels) - 1) != grid(parent):
                 # the time move without the space move it holds: the values corrected for the
                 # space error left on each grid
-                lv = levels[-1] = dataclasses.replace(
-                    lv, move_se=(lv.theta + left(len(levels) - 1) - base - left(parent)) / lv.se
-                )
+                lv = levels[-1] = _time_move(lv, base, left, len(levels) - 1, parent)
                 notes.append(
                     f"the time refit to dt {lv.dt:.3g} s also refined the internal grid from {grid(parent)} to "
                     f"{grid(len(levels) - 1)} nodes (pcrjax resolves the dynamic step's boundary layer, which narrows as dt "
@@ -423,8 +435,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             prev = lv
             # the coarser grid's space error is this move (or its extrapolation): time refines there
             if settled and what == "space":
-                k = 2.0 ** ORDER["space"]
-                space_error, g0 = (lv.theta - base) * k / (k - 1.0), grid(parent)
+                space_error, g0 = _space_error(lv.theta - base), grid(parent)
                 break
             n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
@@ -510,8 +521,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
         dataclasses.replace(at1, what="time", parent=base + 1, iterations=0),
     ]
     for i in (base + 1, base + 2):  # their time moves, the space move of a refined internal grid taken out as in `refine`
-        lv = levels[i]
-        levels[i] = dataclasses.replace(lv, move_se=(lv.theta + left(i) - levels[lv.parent].theta - left(lv.parent)) / lv.se)
+        levels[i] = _time_move(levels[i], levels[levels[i].parent].theta, left, i, levels[i].parent)
     notes.append(
         f"on the finest grid ({last.nodes} nodes, dt {last.dt:.3g} s) the basin the fit started in fits better than the one "
         f"the fit's grid led to (loss {0.5 * at1.chi2 * m:.6g} against {answer:.6g}; {moved} {np.max(np.abs(rival.move_se)):.3g} "
@@ -599,13 +609,12 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                 if what == "time":
                     final = {key: np.asarray(v2[key]) + m2[key] / (k - 1.0) for key in v2}
                 else:
-                    correction = {key: m2[key] * k / (k - 1.0) for key in v2}
+                    correction = {key: _space_error(m2[key]) for key in v2}
                 moved[what] = {key: np.abs(k * m2[key] - m1[key]) / (k - 1.0) for key in v2}
                 moves = np.where(problem.measured, in_final_se(last, error), 0.0)
                 model[extrapolated] = [levels[idx[-2]].dt, last.dt] if what == "time" else [levels[idx[-2]].nodes, last.nodes]
         if values_from_coarser and not usable:  # settled by its last move: the estimate takes the time moves' space part out
-            k = 2.0 ** ORDER["space"]
-            correction = {key: m * k / (k - 1.0) for key, m in _change(reported(last.parent), reported(idx[-1])).items()}
+            correction = {key: _space_error(m) for key, m in _change(reported(last.parent), reported(idx[-1])).items()}
             kept = _left_on(g0, grid(chains["time"][-1]))
         worst = float(np.max(moves))
         if worst > THIRD:
