@@ -30,7 +30,7 @@ import numpy as np
 
 from . import discretisation, experiment, profile, robust, start
 from .least_squares import FitError, levenberg_marquardt, standard_errors_theta
-from .problem import NOMINAL_SIGMA, Problem
+from .problem import CLOCK_STARTS, NOMINAL_SIGMA, Problem
 from .result import Result, summarize
 
 __all__ = ["FitError", "Problem", "Result", "fit", "modal_start", "windows"]
@@ -49,7 +49,7 @@ def modal_start(
     """Start values of damping and lengths (`start.initial_lengths`: the candidates whose
     lumped free motion, modes or static response match the recording's), ranked by the loss over the first ``rank_window`` seconds
     after the forcing with the push and the camera fitted (a rollout per push component,
-    `Problem.fit_linear`); the ``screen_best`` best are screened by a short Levenberg-Marquardt
+    `Problem.fit_linear`, from every clock offset in `CLOCK_STARTS`); the ``screen_best`` best are screened by a short Levenberg-Marquardt
     fit of all unknowns on the first ``screen_window`` seconds, which mode shapes and amplitudes
     decide. Returns (the best, the screening: None, or its ``window`` end, ``candidates``,
     ``iterations`` and the best's loss ``history``: the fit's windows up to that end are then
@@ -60,16 +60,13 @@ def modal_start(
     if not found:
         return start.initial_tau(problem, theta, progress), None
     i_len = problem.slices["lengths"]
-    if len(found) == 1:
-        theta[i_len] = found[0]
-        return theta, None
     t_from = experiment.forcing_end(problem.scene)
     t_screen = t_from + screen_window
     ranked = []
     for x in found:
         th = theta.copy()
         th[i_len] = x
-        th, cost = problem.fit_linear(th, t_from + rank_window)
+        th, cost = problem.fit_linear(th, t_from + rank_window, clocks=CLOCK_STARTS)
         if progress is not None:
             progress(
                 f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm, push and camera fitted",

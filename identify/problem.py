@@ -33,7 +33,7 @@ import pcrjax
 from pcrjax import traces
 
 from . import camera, experiment, robust
-from .least_squares import levenberg_marquardt
+from .least_squares import FitError, levenberg_marquardt
 from .recording import Recording, RecordingError
 
 PHYSICAL = ("tau", "tau_per_rod", "tau_split", "lengths", "youngs_modulus", "platform_mass")
@@ -44,7 +44,13 @@ NOMINAL_SIGMA = np.array([1e-9, 1e-9, 1e-6])  # noise scales (m, m, rad) of the 
 # start pose and the model's own pose at t = 0 (`frame_transform`): a rod length that moves the
 # robot's rest pose by a millimetre then needs no compensating change of a frame unknown, a
 # valley of the loss 10^4 times narrower than it is long that Levenberg-Marquardt could not follow.
-CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time_offset", 1, 1e-3))
+CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time_offset", 1, CLOCK_UNIT := 1e-3))
+# The clock offset's starts for a push-and-camera fit (`Problem.fit_linear`): a push released
+# and seen with its clock off by half a period of the platform's dominant mode looks like the
+# opposite push seen on time, so a fit from one clock finds either. Every 0.5 ms over +-10 ms
+# (a thirteenth of the period of the Triskele's fastest platform mode, 155 Hz; the frames the rollout covers
+# allow 20 ms, `Problem.window`).
+CLOCK_STARTS = np.arange(-10e-3, 10e-3 + 1e-9, 0.5e-3)
 # Unknowns the motion seen depends on (nearly) linearly: Levenberg-Marquardt's trust region does
 # not bound their steps (a Gauss-Newton step is right for them however large; the start pose of a
 # 1 kHz cantilever film is a millimetre from the first frame, a hundred typical units).
@@ -316,12 +322,14 @@ class Problem:
         d_m0, d_tc = jax.jacfwd(f, argnums=(0, 1))(jnp.asarray(m0), tc)
         return np.asarray(f(jnp.asarray(m0), tc)), np.concatenate([np.asarray(d_m0) @ dm0, np.asarray(d_tc)], axis=1)
 
-    def fit_linear(self, theta, t_end=None, max_iter: int = 10):
+    def fit_linear(self, theta, t_end=None, max_iter: int = 10, clocks=None):
         """(``theta`` with the unknowns the motion seen depends on (nearly) linearly fitted to the
         frames up to ``t_end``, the cost there): Levenberg-Marquardt on the camera's unknowns and
         the released push, the motion held at ``theta``'s and linear in the push (its tangents by
         finite differences: one rollout per push component; the camera's Jacobian costs none).
-        Cost inf where a rollout fails."""
+        With ``clocks`` (s), the fit starts from each of those time offsets and the cheapest
+        answer is kept (`CLOCK_STARTS`: the same rollouts serve every start). Cost inf where a
+        rollout fails."""
         theta = np.asarray(theta, float)
         n, noise = self.n_physical, self._noise()
         mask, active = self.window(t_end)
@@ -341,10 +349,23 @@ class Problem:
         args = (m0, dm, jnp.asarray(theta), jnp.asarray(push), noise, mask)
         rf = lambda x: self._linear_residual(x, *args)  # noqa: E731
         rj = lambda x: (rf(x), self._linear_jacobian(x, *args))  # noqa: E731
-        x, _, r, _, _, _ = levenberg_marquardt(rf, rj, x0, max_iter, ftol=1e-8, max_step=math.inf)
+        starts = [x0]
+        if clocks is not None and "time_offset" in self.slices:
+            i_clock = push.size + self.slices["time_offset"].start - n
+            starts = [x0.copy() for _ in clocks]
+            for x, c in zip(starts, clocks):
+                x[i_clock] = c / CLOCK_UNIT
+        best, cost = x0, math.inf
+        for x in starts:
+            try:
+                x, _, r, _, _, _ = levenberg_marquardt(rf, rj, x, max_iter, ftol=1e-8, max_step=math.inf)
+            except FitError:
+                continue
+            if 0.5 * float(r @ r) < cost:
+                best, cost = x, 0.5 * float(r @ r)
         out = theta.copy()
-        out[push], out[n:] = x[: push.size], x[push.size :]
-        return out, 0.5 * float(r @ r)
+        out[push], out[n:] = best[: push.size], best[push.size :]
+        return out, cost
 
     def _linear_residual_fn(self, x, m0, dm, theta, push, noise, mask):
         """Residuals with the motion ``m0`` moved along the push tangents ``dm`` by the push's
