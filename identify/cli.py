@@ -57,7 +57,8 @@ def _parser():
         "--profile",
         action="store_true",
         help="profile the loss along each measured value at the fit's grid: 68 %% intervals that follow a curved valley of "
-        "the loss, and any lower minimum the fit missed (a few Levenberg-Marquardt fits per point; slow)",
+        "the loss; where a profile finds a minimum the fit missed, the fit moves there (a few Levenberg-Marquardt fits "
+        "per point; slow)",
     )
     p.add_argument(
         "--cluster",

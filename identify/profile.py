@@ -61,6 +61,7 @@ class Profile:
     lowest: float
     drop: float
     complete: bool  # both walks crossed the level
+    best: np.ndarray  # theta of the lowest point walked (all unknowns)
 
 
 def _crossing(x, rise, m, direction) -> tuple[float, int]:
@@ -184,18 +185,20 @@ def profile(rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, m
         lowest=x_min,
         drop=float(cost0 - y_min),
         complete=bool(np.isfinite(lower) and np.isfinite(upper)),
+        best=points[float(xs[m])][1],
     )
 
 
-def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> dict:
-    """name -> (a dict, or a list of them for a vector) the profiles of the measured unknowns
+def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> tuple[dict, np.ndarray | None]:
+    """(name -> (a dict, or a list of them for a vector) the profiles of the measured unknowns
     (`Problem.measured`) of the fit's problem ``pb`` (the final pass's noise and loss) at its optimum, in
     the values' units: ``lower``, ``upper`` (None: beyond the walk), ``lowest`` and its ``drop``
     below the fit's loss, and the ``points`` walked ([value, rise of the loss above the fit's]);
-    losses in units of the reduced chi-square ``chi2`` (``0.5 |r|^2 / chi2``)."""
+    losses in units of the reduced chi-square ``chi2`` (``0.5 |r|^2 / chi2``); theta of the
+    lowest point any walk met where that lies more than ``LEVEL`` below the fit's loss, else None)."""
     theta = np.asarray(theta, float)
     cost0 = 0.5 * float(r @ r)
-    out = {}
+    out, deepest = {}, (cost0 - LEVEL * chi2, None)
     for u in pb.unknowns:
         if u.name in NUISANCE:
             continue
@@ -238,5 +241,8 @@ def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> dict:
                     points=[[value(x), (float(c) - cost0) / chi2] for x, c in zip(pr.theta, pr.cost, strict=True)],
                 )
             )
+            walked = float(np.min(pr.cost))
+            if walked < deepest[0]:
+                deepest = (walked, pr.best)
         out[u.name] = entries if u.size > 1 else entries[0]
-    return out
+    return out, deepest[1]

@@ -51,8 +51,8 @@ def _amplitude_profile(y, a):
     ).fun
 
 
-def _fit(rf, rj):
-    th, J, r, *_ = levenberg_marquardt(rf, rj, np.array([1.0, 1.0]), 100, ftol=1e-14, max_step=np.inf)
+def _fit(rf, rj, start=(1.0, 1.0)):
+    th, J, r, *_ = levenberg_marquardt(rf, rj, np.asarray(start, float), 100, ftol=1e-14, max_step=np.inf)
     return th, J, r
 
 
@@ -99,3 +99,52 @@ def test_a_profile_from_short_of_the_minimum_finds_it():
     lo = brentq(lambda v: _rate_profile(y, v) - exact - 0.5, th[1] - 10 * se[1], th[1])
     hi = brentq(lambda v: _rate_profile(y, v) - exact - 0.5, th[1], th[1] + 10 * se[1])
     assert abs(pr.lower - lo) < 0.01 * se[1] and abs(pr.upper - hi) < 0.01 * se[1], (pr.lower, pr.upper, lo, hi)
+
+
+def test_a_fit_whose_profile_walks_into_a_lower_minimum_moves_there(monkeypatch):
+    """`fit._profiled` on a tilted double well: the unknown ``a`` has minima at -0.76 and +1
+    (the latter lower by 0.65 of the reduced chi-square, 2.9 standard errors away, over a
+    barrier 0.07 above the first), ``b`` follows it. From the optimum at -1 the profile of ``a`` walks into the
+    lower well, the fit moves there, and the profiles about +1 find nothing lower; started at
+    +1 it stays."""
+    from types import SimpleNamespace
+
+    from identify import fit as fit_module
+    from identify.result import Result
+
+    tilt, m0 = 0.6, 100
+
+    def rf(th):
+        a, b = np.asarray(th, float)
+        return np.concatenate([[a * a - 1.0, tilt * (a - 1.0), 10.0 * (b - a)], np.ones(m0)])
+
+    def rj(th):
+        a, _ = np.asarray(th, float)
+        J = np.zeros((m0 + 3, 2))
+        J[0, 0], J[1, 0], J[2] = 2.0 * a, tilt, [-10.0, 10.0]
+        return rf(th), J
+
+    unknowns = [SimpleNamespace(name=n, size=1, log=False, unit=1.0) for n in ("a", "b")]
+    pb = SimpleNamespace(
+        unknowns=unknowns,
+        slices={"a": slice(0, 1), "b": slice(1, 2)},
+        to_values=lambda th: {"a": th[0], "b": th[1]},
+        residual=rf,
+        residual_and_jacobian=rj,
+        max_step=np.full(2, np.inf),
+        measured=np.array([True, True]),
+        counted=lambda t_end: m0 + 3,
+    )
+
+    def summary(pb, theta, J, r, iterations, converged, history, stages, notes=()):
+        return Result(["a", "b"], {"a": float(theta[0])}, {}, [], [], float(r @ r) / (r.size - 2), [], iterations,
+                      history=list(history), stages=list(stages), message=" ".join(notes))  # fmt: skip
+
+    monkeypatch.setattr(fit_module, "_summary", summary)
+    for start, moved in ((-1.0, True), (1.0, False)):
+        th, J, r = _fit(rf, rj, np.array([start, start]))
+        assert np.sign(th[0]) == start  # the well it started in
+        result, theta, _ = fit_module._profiled(pb, th, J, r, summary(pb, th, J, r, 0, True, [], []), 30, None)
+        assert abs(theta[0] - 1.0) < 0.2 and abs(result.values["a"] - theta[0]) < 1e-12
+        assert ("moved there" in result.message) == moved, result.message
+        assert result.profiles["a"]["drop"] < 0.5
