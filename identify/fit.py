@@ -47,10 +47,11 @@ def modal_start(
     warm=None,
 ):
     """Start values of damping and lengths (`start.initial_lengths`: the candidates whose
-    lumped free motion, modes or static response match the recording's), ranked by the loss over the first ``rank_window`` seconds
-    after the forcing with the push and the camera fitted (a rollout per push component,
-    `Problem.fit_linear`, from every clock offset in `CLOCK_STARTS`); the ``screen_best`` best are screened by a short Levenberg-Marquardt
-    fit of all unknowns on the first ``screen_window`` seconds, which mode shapes and amplitudes
+    lumped free motion, modes or static response match the recording's), ranked by the loss
+    over the first ``rank_window`` seconds after the forcing with the push and the camera fitted
+    (a rollout per push component, `Problem.fit_linear`, from every clock offset in
+    `CLOCK_STARTS`); the ``screen_best`` best are screened by a short Levenberg-Marquardt fit of
+    all unknowns on the first ``screen_window`` seconds, which mode shapes and amplitudes
     decide. Returns (the best, the screening: None, or its ``window`` end, ``candidates``,
     ``iterations`` and the best's loss ``history``: the fit's windows up to that end are then
     done). ``progress(stage, i, loss, step)``, loss and
@@ -169,8 +170,10 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
         if lower is None:
             break
         if moves == PROFILE_MOVES:
-            notes.append(f"the profiles still find a lower minimum after {moves} moves to one (see the profiles)")
-            result = dataclasses.replace(result, message=" ".join([*notes, result.message]).strip())
+            still = (
+                f"after {moves} moves the profiles still walk into a lower minimum; the fit stays at the last (see the profiles)"
+            )
+            result = dataclasses.replace(result, message=f"{still}. {result.message}".strip())
             break
         if progress is not None:
             progress("a profile found a lower minimum: the whole recording again from there", 0, None, 0.0)

@@ -47,9 +47,9 @@ NOMINAL_SIGMA = np.array([1e-9, 1e-9, 1e-6])  # noise scales (m, m, rad) of the 
 CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time_offset", 1, CLOCK_UNIT := 1e-3))
 # The clock offset's starts for a push-and-camera fit (`Problem.fit_linear`): a push released
 # and seen with its clock off by half a period of the platform's dominant mode looks like the
-# opposite push seen on time, so a fit from one clock finds either. Every 0.5 ms over +-10 ms
-# (a thirteenth of the period of the Triskele's fastest platform mode, 155 Hz; the frames the rollout covers
-# allow 20 ms, `Problem.window`).
+# opposite push seen on time, so a fit from one clock finds either. Every 0.5 ms (a thirteenth
+# of the period of the Triskele's fastest platform mode, 155 Hz) over +-10 ms (the rollouts
+# cover offsets up to 20 ms, `Problem.window`).
 CLOCK_STARTS = np.arange(-10e-3, 10e-3 + 1e-9, 0.5e-3)
 # Unknowns the motion seen depends on (nearly) linearly: Levenberg-Marquardt's trust region does
 # not bound their steps (a Gauss-Newton step is right for them however large; the start pose of a
