@@ -166,7 +166,8 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
     )
     notes = []
     for moves in range(PROFILE_MOVES + 1):
-        found, lower = profile.report(pb, theta, J, r, result.loss, standard_errors_theta(J, result.loss), say)
+        se = standard_errors_theta(J, result.loss)
+        found, lower = profile.report(pb, theta, J, r, result.loss, se, say)
         if lower is None:
             break
         if moves == PROFILE_MOVES:
@@ -192,7 +193,7 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
         if rn @ rn >= r @ r:
             break
         drop = 0.5 * float(r @ r - rn @ rn) / result.loss
-        away = np.max(np.abs((th - theta) / standard_errors_theta(J, result.loss))[pb.measured])
+        away = np.max(np.abs((th - theta) / se)[pb.measured])
         notes.append(
             f"the profiles found a minimum {drop:.3g} (reduced chi-square) lower than the windows' fit reached, "
             f"{away:.3g} standard errors from it, and the fit moved there"

@@ -1,4 +1,8 @@
-"""Scene builders for tests (independent of the shipped TOML files)."""
+"""Scene builders for tests (independent of the shipped TOML files), and the recordings'
+generator script as a module."""
+
+import importlib.util
+from pathlib import Path
 
 import pcrjax
 from pcrjax import scene_from_dict
@@ -56,3 +60,13 @@ def rod_data(
 
 def static_tip(scene):
     return pcrjax.solve_static(scene)
+
+
+def recording_generator():
+    """``experiments_data/generate.py`` as a module (it is a script, not a package)."""
+    spec = importlib.util.spec_from_file_location(
+        "generate", Path(__file__).resolve().parent.parent / "experiments_data" / "generate.py"
+    )
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    return gen

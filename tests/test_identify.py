@@ -17,6 +17,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import recording_generator
 
 import pcrjax
 from identify import experiment, modes, platform_screen, start
@@ -29,16 +30,6 @@ from identify.start import latin_hypercube
 from pcrjax.io.scene_file import read_toml, scene_from_dict, scene_path
 
 DATA = "experiments_data"
-
-
-def _generator():
-    """``experiments_data/generate.py`` as a module (it is a script, not a package)."""
-    import importlib.util
-
-    spec_file = importlib.util.spec_from_file_location("generate", f"{DATA}/generate.py")
-    gen = importlib.util.module_from_spec(spec_file)
-    spec_file.loader.exec_module(gen)
-    return gen
 
 
 def test_matrix_pencil_finds_damped_modes_through_missing_frames():
@@ -191,9 +182,9 @@ def test_push_and_camera_fit_scans_the_clock_for_the_recorded_push():
     the platform's modes, and a push-and-camera fit from a clock of 0 alone found the opposite
     push, a third as large, seen 1.25 ms early (measured: push [5.9, -6.7] mN against the truth's
     [-13.6, 17.6], cost 10 720), and whole fits of this truth filmed with other noise ended in
-    that basin. Started from every clock in
-    `CLOCK_STARTS` it finds the truth's push and clock (measured: force 4.7 % and moment 3 % off,
-    clock 0.19 ms; cost 1 584; the fit's own grid is not the truth's)."""
+    that basin. Started from every clock in `CLOCK_STARTS` it finds the truth's push and clock
+    (measured: force 4.7 % and moment 3 % off, clock 0.19 ms; cost 1 584; the fit's own grid
+    is not the truth's)."""
     rec = load_recording(f"{DATA}/triskele_push_release_r1.csv")
     pb = Problem(rec, ("tau", "lengths"))
     truth = rec.truth
@@ -434,7 +425,7 @@ def test_recording_with_the_scenes_own_values_fits_back_unchanged(tmp_path):
     """A recording generated with the scene's own damping, length and push (the cantilever's
     sidecar values) fitted from those values: the fit must return them (no drift away from a
     start that is already the truth) with the loss at the noise level."""
-    gen = _generator()
+    gen = recording_generator()
     spec = dict(gen.RECORDINGS["cantilever_release"])
     truth = dict(
         spec["truth"], tau=spec["rod"]["tau"], lengths=0.4, push_force=[spec["tip"]["force"][0], spec["tip"]["force"][2]]
@@ -477,7 +468,7 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     uncertainties, and the wild frames reported."""
     from identify import cli
 
-    gen = _generator()
+    gen = recording_generator()
     spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
     spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
     spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=5e-5)
@@ -642,7 +633,7 @@ def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
     uncertainties, and E printed in GPa."""
     from identify import cli
 
-    gen = _generator()
+    gen = recording_generator()
     spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
     spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
     spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
@@ -674,7 +665,7 @@ def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_pa
     pytest.importorskip("dask.distributed")
     from identify import cli
 
-    gen = _generator()
+    gen = recording_generator()
     paths = []
     for name, tau in (("small_a", 1.5e-3), ("small_b", 3e-3)):
         spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.1)

@@ -104,9 +104,9 @@ def test_a_profile_from_short_of_the_minimum_finds_it():
 def test_a_fit_whose_profile_walks_into_a_lower_minimum_moves_there(monkeypatch):
     """`fit._profiled` on a tilted double well: the unknown ``a`` has minima at -0.76 and +1
     (the latter lower by 0.65 of the reduced chi-square, 2.9 standard errors away, over a
-    barrier 0.07 above the first), ``b`` follows it. From the optimum at -1 the profile of ``a`` walks into the
-    lower well, the fit moves there, and the profiles about +1 find nothing lower; started at
-    +1 it stays."""
+    barrier 0.07 above the first), ``b`` follows it. From the optimum at -0.76 the profile of
+    ``a`` walks into the lower well, the fit moves there, and the profiles about +1 find nothing
+    lower; started at +1 it stays."""
     from types import SimpleNamespace
 
     from identify import fit as fit_module

@@ -6,6 +6,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import recording_generator
 
 from identify import camera
 from identify.recording import RecordingError, load_recording, write_recording
@@ -31,11 +32,7 @@ def test_own_grid_recordings_are_what_the_model_films_today(name, tmp_path):
     ones. Made on 2026-11-25, they had drifted from the model by up to 0.69 um and 82 urad on the
     Triskele push-release (350 and 40 times its noise) after later changes to the rods'
     integration, and the slow fits no longer recovered their truths (lengths 76 um off)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("generate", DATA / "generate.py")
-    gen = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gen)
+    gen = recording_generator()
     again = load_recording(gen.generate(name, gen.RECORDINGS[name], tmp_path))
     shipped = load_recording(DATA / f"{name}.csv")
     noise = np.array([shipped.truth["noise_position"]] * 2 + [shipped.truth["noise_angle"]])
