@@ -102,3 +102,26 @@ def test_a_continuation_that_loses_its_path_ends_there_when_asked():
     lost = stats(newton.NewtonSettings(tol=1e-13, max_iter=40, stop_when_lost=True))
     assert int(lost.result) != 0 and int(lost.iterations) == 40
     assert int(stats(SETTINGS).iterations) > 40
+
+
+def test_a_continuation_that_loses_its_path_is_retried_in_shorter_steps():
+    """sinh(x) = s sinh(3) from x = 0 with at most 5 directions per stage: two stages are too
+    long a step (the second ends unconverged) and the solve is reported failed; with ``retry`` 8
+    the retry's eight stages reach the root x = 3, and the implicit derivative through that solve
+    is the closed form dx/dq = 1 / cosh(x) of sinh(x) = q."""
+    settings = newton.NewtonSettings(tol=1e-13, max_iter=5)
+
+    def root(q, retry):
+        h = lambda x, s: jnp.sinh(x) - s * q  # noqa: E731
+        fn = lambda x: h(x, 1.0)  # noqa: E731
+        stages = newton.continuation_first(jnp.zeros(1), 2, retry)
+        x, _, stats = newton.solve(fn, jax.jacfwd(fn), newton.Jacobian.empty(1), settings, stages, (h, jax.jacfwd(h)))
+        return x[0], stats
+
+    q = jnp.asarray(np.sinh(3.0))
+    _, lost = root(q, 0)
+    assert int(lost.result) != 0
+    x, stats = jax.jit(lambda q: root(q, 8))(q)
+    assert int(stats.result) == 0 and abs(float(x) - 3.0) < 1e-13
+    assert int(stats.iterations) > int(lost.iterations)  # the first plan ran, then the retry
+    np.testing.assert_allclose(jax.grad(lambda q: root(q, 8)[0])(q), 1.0 / np.cosh(3.0), rtol=1e-10)

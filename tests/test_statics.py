@@ -96,3 +96,37 @@ def test_precurved_rod_is_a_circular_arc():
     # rotates the tangent towards local x = +z: tip = (sin(kL), 0, 1 - cos(kL)) / k.
     expected = np.array([math.sin(kappa * L), 0.0, 1 - math.cos(kappa * L)]) / kappa
     np.testing.assert_allclose(np.asarray(res.position), expected, atol=1e-12)
+
+
+def test_a_platform_continuation_that_loses_its_path_is_retried():
+    """The Triskele-bot of the shipped push-release recording at lengths 31.196, 33.034 and
+    30.692 mm under a push of 20 mN and 0.5 mN m: inside `jit` its 10-stage static
+    continuation lost the path (a stage's Newton wandered for 50 directions; round-off decides,
+    it converged outside `jit`), and every fit rollout there failed. The retry in 20 stages
+    converges, to the equilibrium that a 20-stage continuation alone reaches."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from identify import experiment
+    from identify.recording import load_recording
+
+    scene = experiment.build_scene(load_recording("experiments_data/triskele_push_release.csv"))
+    vals = dict(
+        tau=jnp.asarray(0.000383),
+        lengths=jnp.array([0.031195964042652822, 0.03303446703341804, 0.030692295523611954]),
+        push_force=jnp.array([0.02, 0.0]),
+        push_moment=jnp.asarray(0.0005),
+    )
+
+    def static(v, stages):
+        s = experiment.apply(scene, v)
+        return pcrjax.solve_static(dataclasses.replace(s, solver=dataclasses.replace(s.solver, continuation=stages)))
+
+    got = jax.jit(lambda v: static(v, 10))(vals)
+    assert bool(got.converged)
+    ref = jax.jit(lambda v: static(v, 20))(vals)
+    assert bool(ref.converged) and int(ref.newton_iterations) < int(got.newton_iterations)
+    np.testing.assert_allclose(got.position, ref.position, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.rotation, ref.rotation, rtol=0, atol=1e-10)

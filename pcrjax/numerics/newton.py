@@ -145,10 +145,15 @@ def with_continuation(x0, n: int, need_jacobian=True) -> Stages:
     return _stages(rows, x0)
 
 
-def continuation_first(x0, n: int) -> Stages:
+def continuation_first(x0, n: int, retry: int = 0) -> Stages:
     """Continuation s = 1/n .. 1 from ``x0`` (the root at s = 0), each stage from the last, with a
-    fresh Jacobian at the first stage only (Broyden-updated after)."""
-    return _stages([((k + 1) / n, x0, k > 0, k == 0, False) for k in range(n)], x0)
+    fresh Jacobian at the first stage only (Broyden-updated after). With ``retry``, if that
+    does not converge, a continuation of ``retry`` stages from ``x0`` again, each with a fresh
+    Jacobian: a path that n stages lose (a stage's Newton wanders off and the rest follow) is
+    followed in shorter steps."""
+    rows = [((k + 1) / n, x0, k > 0, k == 0, False) for k in range(n)]
+    rows += [((k + 1) / retry, x0, k > 0, True, True) for k in range(retry)]
+    return _stages(rows, x0)
 
 
 class _State(eqx.Module):

@@ -26,7 +26,7 @@ from ..errors import SceneError
 from ..numerics import newton, results
 from ..physics.rotations import exp_map, matmul, rotation_vector, transpose_matmul
 from . import assembly
-from .statics import StaticSolution, solve_static
+from .statics import STATIC_RETRY, StaticSolution, solve_static
 
 
 def check_square(scene):
@@ -129,7 +129,7 @@ def solve_static_inverse(scene, p, R, stages: int | None = None, t=0.0) -> Stati
     k = max(1, s.continuation if stages is None else stages)
     homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
     x, _, stats = newton.solve(
-        prob1.residual, prob1.jacobian, newton.Jacobian.empty(prob1.size), s.newton, newton.continuation_first(x0, k), homotopy
+        prob1.residual, prob1.jacobian, newton.Jacobian.empty(prob1.size), s.newton, newton.continuation_first(x0, k, retry=STATIC_RETRY * k), homotopy
     )
     stats = newton.Stats(
         iterations=stats.iterations + fwd.stats.iterations,
