@@ -129,7 +129,12 @@ def solve_static_inverse(scene, p, R, stages: int | None = None, t=0.0) -> Stati
     k = max(1, s.continuation if stages is None else stages)
     homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
     x, _, stats = newton.solve(
-        prob1.residual, prob1.jacobian, newton.Jacobian.empty(prob1.size), s.newton, newton.continuation_first(x0, k, retry=STATIC_RETRY * k), homotopy
+        prob1.residual,
+        prob1.jacobian,
+        newton.Jacobian.empty(prob1.size),
+        s.newton,
+        newton.continuation_first(x0, k, retry=STATIC_RETRY * k),
+        homotopy,
     )
     stats = newton.Stats(
         iterations=stats.iterations + fwd.stats.iterations,

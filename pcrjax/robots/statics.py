@@ -13,7 +13,6 @@ import jax.numpy as jnp
 from ..numerics import newton
 from . import assembly
 
-
 # A continuation planned first (a platform's) that ends unconverged is tried again with this many
 # times its stages. The Triskele-bot under a released push (20 mN, 0.5 mN m) at lengths of 31.2,
 # 33.0 and 30.7 mm lost its 10-stage path inside `jit` (round-off: it converged outside), and
