@@ -177,10 +177,13 @@ def run(args) -> dict:
     )
     seen = np.asarray(problem.seen(problem.to_theta(_as_arrays(result.values))))
     payload = dict(recording=str(rec.path), fit=problem.fit, units=UNITS, **result.to_json())
+    if result.profiles:  # the standard errors widened where the profiles' intervals are wider
+        payload["statistical_errors"] = {k: result.statistical_error(k) for k in result.standard_errors}
     (out / "fit.json").write_text(json.dumps(payload, indent=2))
     _plots(out, rec, seen, result)
     for name, v in result.values.items():
-        print(f"{name:>15} = {format_value(name, v, result.standard_errors[name], result.discretisation_errors.get(name))}")
+        stat = result.statistical_error(name)
+        print(f"{name:>15} = {format_value(name, v, stat, result.discretisation_errors.get(name))}")
     if result.model:
         m = result.model
         if "extrapolated_from_dt" in m or "extrapolated_from_nodes" in m:
@@ -209,6 +212,11 @@ def run(args) -> dict:
     for name, entries in result.profiles.items():
         for k, pr in enumerate(entries if isinstance(entries, list) else [entries]):
             print(_profile_line(name if not isinstance(entries, list) else f"{name}[{k}]", UNITS[name], pr))
+    if result.profiles:
+        print(
+            "the statistical errors above of the profiled values reach their 68 % profile intervals' farther ends where "
+            "those lie beyond a standard error (scaled to the reported model's noise levels)"
+        )
     if result.outliers:
         shown = ", ".join(f"{t:.4g}" for t in result.outliers[:10]) + (" ..." if len(result.outliers) > 10 else "")
         print(

@@ -189,11 +189,26 @@ def profile(rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, m
     )
 
 
+def widening(entry: dict) -> float:
+    """How many times its standard error the profile ``entry`` (`report`) puts the 68 % interval's
+    farther end from the fit's value (at least 1): the factor by which a curved or flat valley
+    widens the standard error. An open end counts as the farthest point walked on its side (a
+    lower bound of the interval there)."""
+    v, se = entry["value"], entry["standard_error"]
+    ends = []
+    for bound, side in ((entry["lower"], -1.0), (entry["upper"], 1.0)):
+        if bound is None:
+            walked = [x for x, _ in entry["points"] if side * (x - v) > 0]
+            bound = max(walked, key=lambda x: side * (x - v)) if walked else v
+        ends.append(abs(bound - v))
+    return max(1.0, max(ends) / se) if se > 0 else 1.0
+
+
 def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> tuple[dict, np.ndarray | None]:
     """(name -> (a dict, or a list of them for a vector) the profiles of the measured unknowns
     (`Problem.measured`) of the fit's problem ``pb`` (the final pass's noise and loss) at its optimum, in
     the values' units: ``lower``, ``upper`` (None: beyond the walk), ``lowest`` and its ``drop``
-    below the fit's loss, and the ``points`` walked ([value, rise of the loss above the fit's]);
+    below the fit's loss, the fit's ``value`` and the ``points`` walked ([value, rise of the loss above the fit's]);
     losses in units of the reduced chi-square ``chi2`` (``0.5 |r|^2 / chi2``); theta of the
     lowest point any walk met where that lies more than ``LEVEL`` below the fit's loss, else None)."""
     theta = np.asarray(theta, float)
@@ -231,6 +246,7 @@ def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> tuple[dict,
             )
             entries.append(
                 dict(
+                    value=value(theta[index]),
                     lower=None if math.isnan(pr.lower) else value(pr.lower),
                     upper=None if math.isnan(pr.upper) else value(pr.upper),
                     lowest=value(pr.lowest),

@@ -7,7 +7,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from . import robust
+from . import profile, robust
 from .least_squares import covariance
 from .problem import Problem
 
@@ -40,9 +40,21 @@ class Result:
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
 
+    def statistical_error(self, name):
+        """The statistical error of ``name``: its standard error, widened where a profile
+        (`profile.widening`) puts the 68 % interval farther from the fit's value than the
+        standard error says (a valley that curves or flattens within a standard error)."""
+        se = self.standard_errors[name]
+        entries = self.profiles.get(name)
+        if not entries:
+            return se
+        wide = [profile.widening(e) for e in (entries if isinstance(entries, list) else [entries])]
+        return (np.asarray(se, float) * wide).tolist() if isinstance(entries, list) else float(se * wide[0])
+
     def uncertainty(self, name):
-        """The statistical and discretisation errors of ``name`` combined (root sum of squares)."""
-        return np.hypot(self.standard_errors[name], self.discretisation_errors.get(name, 0.0))
+        """The statistical (`statistical_error`) and discretisation errors of ``name`` combined
+        (root sum of squares)."""
+        return np.hypot(self.statistical_error(name), self.discretisation_errors.get(name, 0.0))
 
 
 def summarize(problem: Problem, theta, J, r, t_end=None, **info) -> Result:

@@ -494,10 +494,14 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
         se = pr["standard_error"]  # the fit's grid's, whose noise levels the profile's loss has
         assert abs(pr["drop"]) < 0.05 and pr["lower"] < fitted < pr["upper"], (name, pr, fitted)
         assert abs(0.5 * (pr["upper"] - pr["lower"]) / se - 1) < 0.2, (name, pr, se)
+        # the statistical error reported reaches the interval's farther end: here within 20 % of the SE
+        ratio = np.asarray(res["statistical_errors"][name]) / np.asarray(res["standard_errors"][name])
+        assert np.all((ratio >= 1) & (ratio < 1.2)), (name, ratio)
     assert np.allclose(sorted(res["outliers"]), np.sort(rec.t[wild])), (res["outliers"], np.sort(rec.t[wild]))
     truth = spec["truth"]
     for name in ("tau", "lengths", "time_offset"):
-        err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
+        stat = res["statistical_errors"][name]
+        err = np.hypot(stat, res["discretisation_errors"][name])
         assert abs(res["values"][name] - truth[name]) < 3 * err, (name, res["values"][name], truth[name], err)
     # one space refinement (2N at the fit's dt), then two time refinements (dt / 2, dt / 4); the
     # space move is small, so it is the fit's grid's space error and time refines at the fit's N 6

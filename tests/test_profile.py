@@ -12,7 +12,7 @@ import pytest
 from scipy.optimize import brentq, minimize_scalar
 
 from identify.least_squares import levenberg_marquardt, standard_errors_theta
-from identify.profile import profile
+from identify.profile import profile, widening
 
 SIGMA = 0.05
 T = np.linspace(0.0, 2.0, 40)
@@ -76,7 +76,22 @@ def test_profile_intervals_match_the_closed_form_profile(seed):
         # every point of the walk is the held minimum, to the held fits' tolerance (0.01)
         for v, c in zip(pr.theta, pr.cost, strict=True):
             assert -1e-9 < c - exact(v) < 0.01, (v, c, exact(v))
+        # the statistical error a profile reports: the interval's farther end, in standard errors
+        entry = dict(value=th[index], lower=pr.lower, upper=pr.upper, standard_error=se[index], points=[])
+        assert abs(widening(entry) - max(1.0, max(hi - th[index], th[index] - lo) / se[index])) < 1e-3
     assert abs((hi - th[0]) - (th[0] - lo)) > 1e-3 * se[0] or abs((hi - th[1]) - (th[1] - lo)) > 1e-3 * se[1]
+
+
+def test_a_profile_widens_the_standard_error_to_its_farther_end_or_the_farthest_point_walked():
+    """`widening` on hand-made profiles: a symmetric interval of one standard error gives 1, an
+    interval reaching 3 SE on one side gives 3, one narrower than the SE gives 1 (never less),
+    and an open end counts as the farthest point walked on its side."""
+    base = dict(value=2.0, standard_error=0.5, points=[[1.0, 2.0], [2.0, 0.0], [2.4, 0.1], [3.5, 0.4]])
+    assert widening(dict(base, lower=1.5, upper=2.5)) == pytest.approx(1.0)
+    assert widening(dict(base, lower=1.8, upper=3.5)) == pytest.approx(3.0)
+    assert widening(dict(base, lower=1.9, upper=2.1)) == 1.0
+    assert widening(dict(base, lower=1.5, upper=None)) == pytest.approx(3.0)  # walked to 3.5, still inside
+    assert widening(dict(base, lower=None, upper=None, points=[[2.0, 0.0]])) == 1.0
 
 
 def test_a_profile_from_short_of_the_minimum_finds_it():
