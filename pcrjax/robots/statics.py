@@ -16,7 +16,9 @@ from . import assembly
 # A continuation planned first (a platform's) that ends unconverged is tried again with this many
 # times its stages. The Triskele-bot under a released push (20 mN, 0.5 mN m) at lengths of 31.2,
 # 33.0 and 30.7 mm lost its 10-stage path inside `jit` (round-off: it converged outside), and
-# converged with 5, 20 or 40 stages.
+# converged with 5, 20 or 40 stages. A solve that stops where it loses its path
+# (`NewtonSettings.stop_when_lost`: a screen of many candidates) is not retried: a batch
+# iterates until its last member finishes, so one member's retry would cost them all.
 STATIC_RETRY = 2
 
 
@@ -53,7 +55,7 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     x0 = jax.lax.stop_gradient(jnp.zeros(prob1.size) if guess is None else guess)
     homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
     if pre:
-        stages = newton.continuation_first(x0, pre, retry=STATIC_RETRY * pre)
+        stages = newton.continuation_first(x0, pre, retry=0 if s.newton.stop_when_lost else STATIC_RETRY * pre)
     elif fallback_stages:
         stages = newton.with_continuation(x0, fallback_stages)
     else:
