@@ -14,11 +14,10 @@ from ..numerics import newton
 from . import assembly
 
 # A continuation planned first (a platform's) that ends unconverged is tried again with this many
-# times its stages. The Triskele-bot under a released push (20 mN, 0.5 mN m) at lengths of 31.2,
-# 33.0 and 30.7 mm lost its 10-stage path inside `jit` (round-off: it converged outside), and
-# converged with 5, 20 or 40 stages. A solve that stops where it loses its path
-# (`NewtonSettings.stop_when_lost`: a screen of many candidates) is not retried: a batch
-# iterates until its last member finishes, so one member's retry would cost them all.
+# times its stages: a stage's Newton can wander off the path (round-off decides; the same solve
+# can converge outside `jit` and fail inside), and shorter stages follow it. A solve that stops
+# where it loses its path (`NewtonSettings.stop_when_lost`: a screen of many candidates) is not
+# retried: a batch iterates until its last member finishes, so one member's retry would cost them all.
 STATIC_RETRY = 2
 
 
