@@ -70,22 +70,25 @@ def folders(paths) -> list[str]:
 
 
 def _columns(rows) -> list[str]:
-    names = []
+    """A column per fitted number: ``name`` where every row's value is a scalar, else
+    ``name[i]`` up to the longest (a cantilever's one length sits in ``lengths[0]`` beside a
+    Triskele's three)."""
+    sizes: dict[str, int] = {}
     for r in rows:
         for k, v in r.get("values", {}).items():
-            for i in range(np.size(v)):
-                label = k if np.size(v) == 1 else f"{k}[{i}]"
-                if label not in names:
-                    names.append(label)
-    return names
+            sizes[k] = max(sizes.get(k, 0), int(np.size(v)))
+    return [k if n == 1 else f"{k}[{i}]" for k, n in sizes.items() for i in range(n)]
 
 
 def _entry(d: dict, label: str):
+    """The cell of ``label`` in one row's ``d`` (values or errors); blank where that row has
+    no such number."""
     name, _, index = label.partition("[")
     if name not in d:
         return ""
     v = np.atleast_1d(d[name])
-    return repr(float(v[int(index[:-1]) if index else 0]))
+    i = int(index[:-1]) if index else 0
+    return repr(float(v[i])) if i < v.size else ""
 
 
 def write_summary(out: Path, rows: list[dict]):

@@ -659,6 +659,33 @@ def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
         assert err < 0.01 * truth  # and pinned: E was 1-10 % off at the start
 
 
+def test_summary_of_a_cantilever_and_a_triskele_fit_gives_each_number_its_column(tmp_path):
+    """fits.csv of a cantilever (one length, a scalar) beside a Triskele (three lengths): the
+    cantilever's length sits in lengths[0], its lengths[1] and [2] are blank, and a failed
+    fit's row is blank in every value column."""
+    from identify.batch import write_summary
+
+    def row(name, values, status="converged"):
+        se = {k: (0.01 * np.asarray(v)).tolist() for k, v in values.items()}
+        return {"recording": name, "status": status, "wall_s": 1.0, "values": values, "standard_errors": se}
+
+    rows = [
+        row("c.csv", {"tau": 2e-3, "lengths": 0.5}),
+        row("t.csv", {"tau": 4e-4, "lengths": [0.0312, 0.0329, 0.0308], "time_offset": 3e-3}),
+        {"recording": "x.csv", "status": "failed", "wall_s": 0.5},
+    ]
+    write_summary(tmp_path, rows)
+    lines = (tmp_path / "fits.csv").read_text().splitlines()
+    head = lines[0].split(",")
+    cells = [dict(zip(head, r.split(","), strict=True)) for r in lines[1:]]
+    assert head[4:] == [
+        c for lb in ("tau", "lengths[0]", "lengths[1]", "lengths[2]", "time_offset") for c in (lb, f"{lb}_se", f"{lb}_disc")
+    ]
+    assert float(cells[0]["lengths[0]"]) == 0.5 and cells[0]["lengths[1]"] == cells[0]["time_offset"] == ""
+    assert float(cells[1]["lengths[2]"]) == 0.0308 and float(cells[1]["lengths[2]_se"]) == 0.01 * 0.0308
+    assert cells[2]["status"] == "failed" and all(cells[2][c] == "" for c in head[4:])
+
+
 def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_path, capsys):
     """``pcrjax-identify A.csv B.csv --out DIR [--cluster local:2]``: two small cantilever
     recordings (0.1 s, other truths, simulated 3x finer in space and 5x in time than the fit's
