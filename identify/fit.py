@@ -104,10 +104,12 @@ def modal_start(
     return best, dict(window=t_screen, candidates=len(ranked), iterations=iterations, history=best_hist)
 
 
-# The whole recording's passes stop when the Gauss-Newton decrement (what the linearised problem
-# could still gain) is below 1e-3 of the current reduced chi-square (relative to the loss:
-# FINAL_FTOL / residuals): 0.5 (delta / SE)^2 is what a parameter delta off the optimum adds to a
-# loss whitened by the noise, so the parameters then lie within about 0.05 SE of the optimum.
+# Each window's pass, and the whole recording's, stops when the Gauss-Newton decrement (what the
+# linearised problem could still gain) is below 1e-3 of the current reduced chi-square (relative
+# to the loss: FINAL_FTOL / residuals): 0.5 (delta / SE)^2 is what a parameter delta off the
+# optimum adds to a loss whitened by the noise, so the parameters then lie within about 0.05 of
+# that window's SE of its optimum. A window's optimum is only the next window's start, which
+# moves further than that: a tighter stop there costs an iteration per window and gains nothing.
 FINAL_FTOL = 2e-3
 
 
@@ -324,15 +326,13 @@ def fit(
                 slope = np.asarray(robust.huber_slope(z, pb.huber))
                 w = np.tile(old / pb.sigma, r.size // 3)
                 initial = (np.asarray(robust.huber(z, pb.huber)), J * (w * slope)[:, None])
-        final = t_end is None
-
         try:
             theta, J, r, it, converged, hist = levenberg_marquardt(
                 lambda th, pb=pb, t_end=t_end: pb.residual(th, t_end),
                 lambda th, pb=pb, t_end=t_end: pb.residual_and_jacobian(th, t_end),
                 theta,
                 max_iter,
-                ftol=FINAL_FTOL / pb.counted(None) if final else 1e-6,
+                ftol=FINAL_FTOL / pb.counted(t_end),
                 max_step=pb.max_step,
                 start=resume if k == done else None,
                 save=lambda st, k=k: save(st, k),

@@ -38,8 +38,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import identify
-import pcrjax
 from pcrjax import traces
+from pcrjax.numerics import results
+from pcrjax.physics.rotations import rotation_vector
+from pcrjax.robots import statics
 
 from . import experiment
 from .least_squares import FitError, levenberg_marquardt
@@ -53,10 +55,21 @@ HORIZON = 0.5  # s of free motion compared (the modes have decayed by then)
 FD_STEP = 1e-6  # finite-difference step in log lengths and log tau
 
 
-def planar_rest(scene):
-    """(x, y, theta of the static equilibrium at t = 0, whether its solve converged)."""
-    st = pcrjax.solve_static(scene, throw=False)
-    return jnp.concatenate([st.position[:2], st.rotation_vector[2:]]), st.converged
+def planar_rest(scene, near=None):
+    """(x, y, theta of the static equilibrium at t = 0, whether its solve converged, its
+    unknowns). ``near``: a neighbouring equilibrium's unknowns to start Newton from
+    (`pcrjax.robots.statics.solve_static`)."""
+    st = statics.solve_static(scene, near=near)
+    pose = jnp.concatenate([st.position[:2], rotation_vector(st.rotation)[2:]])
+    return pose, st.stats.result == results.SUCCESSFUL, st.unknowns
+
+
+def for_screening(scene):
+    """``scene`` whose static solve, where its continuation loses its path, ends there and is
+    marked unconverged, without a retry: in a screen of many candidates such a set of lengths is
+    only passed over."""
+    newton = dataclasses.replace(scene.solver.newton, stop_when_lost=True)
+    return dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, newton=newton))
 
 
 def lumped_modes(scene):
@@ -65,9 +78,7 @@ def lumped_modes(scene):
     platform on massless rods (see the module's text)."""
     body = scene.end.body
     mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
-    # A candidate whose static continuation loses its path is only marked: the solve ends there.
-    newton = dataclasses.replace(scene.solver.newton, stop_when_lost=True)
-    scene = dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, newton=newton))
+    scene = for_screening(scene)
 
     def unloaded(lengths, wrench):
         s = experiment.apply(scene, {"lengths": lengths})
@@ -80,7 +91,7 @@ def lumped_modes(scene):
         L = jnp.exp(log_lengths)
 
         def pose(wrench):  # the rest pose and its convergence ride along as aux: one static solve
-            p, ok = planar_rest(unloaded(L, wrench))
+            p, ok, _ = planar_rest(unloaded(L, wrench))
             return p, (p, ok)
 
         C, (rest, ok) = jax.jacfwd(pose, has_aux=True)(jnp.zeros(3))

@@ -51,6 +51,9 @@ CAMERA_UNKNOWNS = (("start_position", 2, 1e-5), ("start_angle", 1, 1e-4), ("time
 # of the period of the Triskele's fastest platform mode, 155 Hz) over +-10 ms (the rollouts
 # cover offsets up to 20 ms, `Problem.window`).
 CLOCK_STARTS = np.arange(-10e-3, 10e-3 + 1e-9, 0.5e-3)
+# The clock starts run together (`Problem._clock_scan`: this many Levenberg-Marquardt iterations
+# each, in one program), and the fit goes on from the CLOCK_BEST cheapest.
+CLOCK_ITER, CLOCK_BEST = 12, 3
 # Unknowns the motion seen depends on (nearly) linearly: Levenberg-Marquardt's trust region does
 # not bound their steps (a Gauss-Newton step is right for them however large; the start pose of a
 # 1 kHz cantilever film is a millimetre from the first frame, a hundred typical units).
@@ -144,6 +147,8 @@ class Problem:
         self._residual_and_jacobian = keep(self._residual_and_jacobian_fn, "jacobian")
         self._linear_residual = keep(self._linear_residual_fn, "linear-residual")
         self._linear_jacobian = keep(jax.jacfwd(self._linear_residual_fn), "linear-jacobian")
+        self._clock_scan = keep(self._clock_scan_fn, "clock-scan")
+        self._frame = keep(self._frame_fn, "frame")
         self.initial_values = self._initial_values({**nom, **materials}, initial or {})
 
     # -- parameter vector <-> values ----------------------------------------------------------
@@ -310,26 +315,29 @@ class Problem:
         from the start pose and the model's pose at t = 0 (its tangents from the compiled
         Jacobian on the shortest window: a few steps)."""
         _, _, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self.window(0.0))
-        m0, dm0 = np.asarray(m0), np.asarray(dm0)
+        f, d_m0, d_tc = (np.asarray(a) for a in self._frame(jnp.asarray(theta), m0))
+        return f, np.concatenate([d_m0 @ np.asarray(dm0), d_tc], axis=1)
+
+    def _frame_fn(self, theta, m0):
+        """(the pattern frame's offset and rotation (3,) at ``theta`` from the model's pose at
+        t = 0 ``m0``, its derivatives with respect to ``m0`` and to the camera's unknowns)."""
         n = self.n_physical
 
         def f(m0_, tc):
-            vals = self.to_values(jnp.concatenate([jnp.asarray(theta[:n]), tc]))
-            off, rot = frame_transform(m0_, vals)
+            off, rot = frame_transform(m0_, self.to_values(jnp.concatenate([theta[:n], tc])))
             return jnp.concatenate([off, rot[None]])
 
-        tc = jnp.asarray(theta[n:])
-        d_m0, d_tc = jax.jacfwd(f, argnums=(0, 1))(jnp.asarray(m0), tc)
-        return np.asarray(f(jnp.asarray(m0), tc)), np.concatenate([np.asarray(d_m0) @ dm0, np.asarray(d_tc)], axis=1)
+        return f(m0, theta[n:]), *jax.jacfwd(f, argnums=(0, 1))(m0, theta[n:])
 
     def fit_linear(self, theta, t_end=None, max_iter: int = 10, clocks=None):
         """(``theta`` with the unknowns the motion seen depends on (nearly) linearly fitted to the
         frames up to ``t_end``, the cost there): Levenberg-Marquardt on the camera's unknowns and
         the released push, the motion held at ``theta``'s and linear in the push (its tangents by
         finite differences: one rollout per push component; the camera's Jacobian costs none).
-        With ``clocks`` (s), the fit starts from each of those time offsets and the cheapest
-        answer is kept (`CLOCK_STARTS`: the same rollouts serve every start). Cost inf where a
-        rollout fails."""
+        With ``clocks`` (s), the fit starts from each of those time offsets (`CLOCK_STARTS`: the
+        same rollouts serve every start; a few iterations each, together, `_clock_scan_fn`), goes
+        on from the CLOCK_BEST cheapest, and the cheapest answer is kept. Cost inf where a rollout
+        fails."""
         theta = np.asarray(theta, float)
         n, noise = self.n_physical, self._noise()
         mask, active = self.window(t_end)
@@ -352,9 +360,11 @@ class Problem:
         starts = [x0]
         if clocks is not None and "time_offset" in self.slices:
             i_clock = push.size + self.slices["time_offset"].start - n
-            starts = [x0.copy() for _ in clocks]
-            for x, c in zip(starts, clocks):
-                x[i_clock] = c / CLOCK_UNIT
+            scan = np.repeat(x0[None], len(clocks), axis=0)
+            scan[:, i_clock] = np.asarray(clocks) / CLOCK_UNIT
+            xs, costs = (np.asarray(a) for a in self._clock_scan(jnp.asarray(scan), *args))
+            costs = np.where(np.isfinite(costs), costs, np.inf)
+            starts = [xs[i] for i in np.argsort(costs, kind="stable")[:CLOCK_BEST]]
         best, cost = x0, math.inf
         for x in starts:
             try:
@@ -366,6 +376,32 @@ class Problem:
         out = theta.copy()
         out[push], out[n:] = best[: push.size], best[push.size :]
         return out, cost
+
+    def _clock_scan_fn(self, starts, m0, dm, theta, push, noise, mask):
+        """(each of ``starts`` (S, unknowns) after CLOCK_ITER Levenberg-Marquardt iterations on
+        `_linear_residual_fn`, its cost), all starts at once: a fixed number of iterations, each
+        a step that is taken where it lowers the cost (the damping then falls tenfold, else it
+        rises tenfold)."""
+        rf = lambda x: self._linear_residual_fn(x, m0, dm, theta, push, noise, mask)  # noqa: E731
+        jf = jax.jacfwd(rf)
+
+        def one(x):
+            def iteration(_, state):
+                x, cost, lam = state
+                r, J = rf(x), jf(x)
+                A = J.T @ J
+                d = jnp.diag(A) + 1e-12 * jnp.max(jnp.diag(A))
+                step = -jnp.linalg.solve(A + lam * jnp.diag(d), J.T @ r)
+                r_t = rf(x + step)
+                cost_t = 0.5 * r_t @ r_t
+                ok = jnp.isfinite(cost_t) & (cost_t < cost)
+                return jnp.where(ok, x + step, x), jnp.where(ok, cost_t, cost), jnp.where(ok, 0.1 * lam, 10.0 * lam)
+
+            r = rf(x)
+            x, cost, _ = jax.lax.fori_loop(0, CLOCK_ITER, iteration, (x, 0.5 * r @ r, jnp.asarray(1e-3, x.dtype)))
+            return x, cost
+
+        return jax.vmap(one)(starts)
 
     def _linear_residual_fn(self, x, m0, dm, theta, push, noise, mask):
         """Residuals with the motion ``m0`` moved along the push tangents ``dm`` by the push's

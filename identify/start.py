@@ -47,10 +47,11 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+import identify
+from pcrjax import traces
 from pcrjax.robots.signals import Actuation
 
 from . import experiment, modes, platform_screen
@@ -91,22 +92,30 @@ def frame_invariant(shift):
     return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
 
 
-def static_shift(scene):
-    """Jitted ``log lengths -> frame_invariant`` of the static equilibrium after the actuators'
-    moves relative to the one before (m and rad)."""
+def _shift_of(scene):
+    """``log lengths -> frame_invariant`` of the static equilibrium after the actuators' moves
+    relative to the one before (m and rad); NaN where a static solve fails."""
     end = scene.actuation(jnp.asarray(experiment.forcing_end(scene)))
     held = Actuation(
         initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0]
     )
     after = eqx.tree_at(lambda s: s.actuation, scene, held)
 
-    @jax.jit
     def shift(log_lengths):
         lengths = {"lengths": jnp.exp(log_lengths)}
-        (a, ok_a), (b, ok_b) = planar_rest(experiment.apply(scene, lengths)), planar_rest(experiment.apply(after, lengths))
+        a, ok_a, x = planar_rest(experiment.apply(scene, lengths))
+        b, ok_b, _ = planar_rest(experiment.apply(after, lengths), near=x)  # a small move: Newton from the rest before it
         return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
 
     return shift
+
+
+def static_shift(scene):
+    """`_shift_of` ``scene``, compiled (its trace kept on disk, `pcrjax.traces`): one set of log
+    lengths; each static solve ends where its
+    continuation loses its path (`platform_screen.for_screening`): a screen passes over such
+    lengths, and a failed solve costs no more than a converged one."""
+    return traces.jit(_shift_of(platform_screen.for_screening(scene)), "identify-static-shift", (scene,), (identify,))
 
 
 class Features:
@@ -202,6 +211,15 @@ class Features:
         matched = r[:, 0] * np.exp((shown[k] - r[:, 0]) / physical[k])
         return np.concatenate([matched, shape[k_shape]])
 
+    def of_all(self, xs, warm=None) -> list:
+        """`of` each of the log lengths ``xs`` (n, rods), on as many threads as there are cores.
+        ``warm()`` is called once the program has compiled (the caller compiles beside the rest)."""
+        self.of(xs[0])  # compiles once, before the threads
+        if warm is not None:
+            warm()
+        with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+            return list(pool.map(self.of, xs))
+
     def distance(self, features, shapes: bool = True) -> float:
         """Weighted relative distance of model ``features`` to the recorded ones (inf: failed);
         without the mode shapes if not ``shapes``."""
@@ -269,12 +287,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     x0 = theta[i_len]
     n_screen, n_polish = SCREEN[feats.actuated]
     cands = np.log(latin_hypercube(L0, prior_length, n_screen, seed))
-    feats.of(x0)  # compiles once, before the threads
-    if warm is not None:
-        warm()
-    workers = max(1, os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        found = list(pool.map(feats.of, cands))
+    found = feats.of_all(cands, warm)
     dist = np.array([feats.distance(f) for f in found])
     order = np.argsort(dist, kind="stable")
     ok = order[np.isfinite(dist[order])]
@@ -298,7 +311,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     def polish(x):
         return modes.match_frequencies(feats.of, x, feats.recorded, max_iter=8, tol=1e-3, weights=feats.weights, bounds=box)
 
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
         polished = list(pool.map(polish, cands[ok[:n_polish]]))
     reached = [feats.of(x) for x, _ in polished]
     # a match is judged on the frequencies alone: a shape read off an aliased, noisy recording

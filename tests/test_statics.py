@@ -130,3 +130,31 @@ def test_a_platform_continuation_that_loses_its_path_is_retried():
     assert bool(ref.converged) and int(ref.newton_iterations) < int(got.newton_iterations)
     np.testing.assert_allclose(got.position, ref.position, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got.rotation, ref.rotation, rtol=0, atol=1e-10)
+
+
+def test_a_static_solve_from_a_neighbouring_equilibrium_is_the_continuations():
+    """`statics.solve_static(scene, near=...)` (the modal start's static response to an actuator
+    move): the Triskele-bot of the shipped actuator step, its rods 0.2-0.4 mm off nominal, at rest
+    after the recorded actuator move, Newton started from the rest before the move: the rest that
+    the continuation from straight legs reaches (1e-12 m, 1e-11 rad), in a few iterations
+    instead of the continuation's tens."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from identify import experiment
+    from identify.recording import load_recording
+    from pcrjax.robots import statics
+
+    before = experiment.build_scene(load_recording("experiments_data/triskele_actuator_step.csv"))
+    after = eqx.tree_at(lambda s: s.actuation.initial, before, before.actuation.final)
+    lengths = jnp.asarray(experiment.nominal(before)["lengths"]) + jnp.array([4e-4, -3e-4, 2e-4])
+
+    cont = jax.jit(lambda sc, L: statics.solve_static(experiment.apply(sc, {"lengths": L})))
+    rest, cont = cont(before, lengths), cont(after, lengths)  # one program: the scenes differ in values only
+    near = jax.jit(lambda L, x: statics.solve_static(experiment.apply(after, {"lengths": L}), near=x))(lengths, rest.unknowns)
+    assert int(near.stats.result) == int(cont.stats.result) == 0
+    assert int(near.stats.iterations) <= 5 < 20 <= int(cont.stats.iterations)  # measured: 3 and 49
+    np.testing.assert_allclose(near.position, cont.position, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(near.rotation, cont.rotation, rtol=0, atol=1e-11)
+    assert np.max(np.abs(near.position - rest.position)) > 1e-6  # the move moved the platform

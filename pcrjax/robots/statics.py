@@ -30,8 +30,10 @@ class StaticSolution(eqx.Module):
     actuators: jnp.ndarray  # (n_act,) actuator values
 
 
-def solve_static(scene, t=0.0) -> StaticSolution:
-    """Static equilibrium under the actuator values and loads at time ``t``."""
+def solve_static(scene, t=0.0, near=None) -> StaticSolution:
+    """Static equilibrium under the actuator values and loads at time ``t``. ``near``: the
+    unknowns of a neighbouring equilibrium (another solve's `StaticSolution.unknowns`, of the
+    same structure) that Newton starts from; the end's continuation then runs only if that fails."""
     s = scene.solver
     legs, end = scene.legs, scene.end
     n = legs.count
@@ -53,7 +55,9 @@ def solve_static(scene, t=0.0) -> StaticSolution:
     guess = end.static_guess(legs, a, F, M, rod_weight, prob1.sc)
     x0 = jax.lax.stop_gradient(jnp.zeros(prob1.size) if guess is None else guess)
     homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
-    if pre:
+    if near is not None:
+        stages = newton.from_neighbour(jax.lax.stop_gradient(jnp.asarray(near, x0.dtype)), max(pre, fallback_stages, 1))
+    elif pre:
         stages = newton.continuation_first(x0, pre, retry=0 if s.newton.stop_when_lost else STATIC_RETRY * pre)
     elif fallback_stages:
         stages = newton.with_continuation(x0, fallback_stages)
