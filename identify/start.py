@@ -111,10 +111,9 @@ def _shift_of(scene):
 
 
 def static_shift(scene):
-    """`_shift_of` ``scene``, compiled (its trace kept on disk, `pcrjax.traces`): one set of log
-    lengths; each static solve ends where its
-    continuation loses its path (`platform_screen.for_screening`): a screen passes over such
-    lengths, and a failed solve costs no more than a converged one."""
+    """`_shift_of` ``scene``, compiled (its trace kept on disk, `pcrjax.traces`), for one set of
+    log lengths. A static solve whose continuation loses its path ends there, not retried
+    (`platform_screen.for_screening`): the screen passes over such lengths."""
     return traces.jit(_shift_of(platform_screen.for_screening(scene)), "identify-static-shift", (scene,), (identify,))
 
 
