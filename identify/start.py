@@ -74,6 +74,7 @@ FEATURE_STRENGTH = 0.05  # recorded oscillations matched: at least this of the s
 SHAPE_STRENGTH = 0.2  # ... and their shapes too: at least this
 SHAPE_WEIGHT = 0.3  # a mode shape's relative error counts less than its frequency's
 MODEL_ORDER = 13  # the matrix pencil's order on the model's motion: six oscillations and a drift
+WORKERS = max(1, os.cpu_count() or 1)  # threads of the screen and the polish
 
 
 def latin_hypercube(center, half_width, n: int, seed: int = 0):
@@ -216,7 +217,7 @@ class Features:
         self.of(xs[0])  # compiles once, before the threads
         if warm is not None:
             warm()
-        with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
             return list(pool.map(self.of, xs))
 
     def distance(self, features, shapes: bool = True) -> float:
@@ -310,7 +311,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     def polish(x):
         return modes.match_frequencies(feats.of, x, feats.recorded, max_iter=8, tol=1e-3, weights=feats.weights, bounds=box)
 
-    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
         polished = list(pool.map(polish, cands[ok[:n_polish]]))
     reached = [feats.of(x) for x, _ in polished]
     # a match is judged on the frequencies alone: a shape read off an aliased, noisy recording

@@ -104,8 +104,7 @@ class Stages(eqx.Module):
     run only while the solve is not done (converged at s = 1). The last stage has s = 1.
 
     One loop, whatever the stages: the residual and the Jacobian are compiled once, not once per
-    stage. Build them with `plain`, `with_restart`, `with_continuation`, `continuation_first` or
-    `from_neighbour`.
+    stage. Build them with `plain`, `with_restart`, `with_continuation` or `continuation_first`.
     """
 
     s: jnp.ndarray  # (K,)
@@ -155,14 +154,6 @@ def continuation_first(x0, n: int, retry: int = 0) -> Stages:
     rows = [((k + 1) / n, x0, k > 0, k == 0, False) for k in range(n)]
     rows += [((k + 1) / retry, x0, k > 0, True, True) for k in range(retry)]
     return _stages(rows, x0)
-
-
-def from_neighbour(x_near, n: int) -> Stages:
-    """A solve from ``x_near`` (the root of a neighbouring problem), and if it fails, load
-    continuation s = 1/n .. 1 from the root x = 0 at s = 0, each stage with a fresh Jacobian."""
-    zero = jnp.zeros_like(x_near)
-    rows = [(1.0, x_near, False, True, False)] + [((k + 1) / n, zero, k > 0, True, True) for k in range(n)]
-    return _stages(rows, x_near)
 
 
 class _State(eqx.Module):

@@ -56,7 +56,7 @@ def solve_static(scene, t=0.0, near=None) -> StaticSolution:
     x0 = jax.lax.stop_gradient(jnp.zeros(prob1.size) if guess is None else guess)
     homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
     if near is not None:
-        stages = newton.from_neighbour(jax.lax.stop_gradient(jnp.asarray(near, x0.dtype)), max(pre, fallback_stages, 1))
+        stages = newton.with_continuation(jax.lax.stop_gradient(jnp.asarray(near, x0.dtype)), max(pre, fallback_stages, 1))
     elif pre:
         stages = newton.continuation_first(x0, pre, retry=0 if s.newton.stop_when_lost else STATIC_RETRY * pre)
     elif fallback_stages:
