@@ -269,7 +269,7 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
     cost = 0.5 * float(last["r"] @ last["r"])
     ftol = 1e-6 if gain is None else gain / max(cost, 1e-300)
     theta, _, r, it, _, _ = levenberg_marquardt(
-        residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step
+        residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step, huber=problem.huber
     )
     return theta, r, it
 
@@ -308,9 +308,9 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     # noise's curvature term builds up and the steps head for the optimum itself
     theta, J, r, it, _, _ = levenberg_marquardt(
         problem.residual, own, theta, refresh - 1, ftol=still / max(0.5 * float(r @ r), 1e-300),
-        max_step=problem.max_step, initial=(r, J), lam0=1e-9,
+        max_step=problem.max_step, initial=(r, J), lam0=1e-9, huber=problem.huber,
     )  # fmt: skip
-    return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r)))
+    return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
 
 
 def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):

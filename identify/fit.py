@@ -188,6 +188,7 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
                 max_iter,
                 ftol=FINAL_FTOL / pb.counted(None),
                 max_step=pb.max_step,
+                huber=pb.huber,
             )
         except FitError as e:
             notes.append(f"the fit from the profiles' lower minimum {e}")
@@ -338,6 +339,7 @@ def fit(
                 save=lambda st, k=k: save(st, k),
                 progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
                 initial=initial,
+                huber=pb.huber,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))

@@ -18,9 +18,13 @@ class FitError(RuntimeError):
 def covariance(J):
     """(J^T J)^{-1}, the Gauss-Newton covariance of unit-variance residuals, inverted with the
     columns scaled to unit norm (unknowns of very different sizes)."""
-    JtJ = J.T @ J
-    d = 1.0 / np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
-    return d[:, None] * np.linalg.pinv(d[:, None] * JtJ * d[None, :], rcond=1e-14) * d[None, :]
+    return _inverse(J.T @ J)
+
+
+def _inverse(A):
+    """The pseudo-inverse of a Gauss-Newton Hessian ``A``, its columns scaled to unit norm."""
+    d = 1.0 / np.sqrt(np.maximum(np.diag(A), 1e-300))
+    return d[:, None] * np.linalg.pinv(d[:, None] * A * d[None, :], rcond=1e-14) * d[None, :]
 
 
 def levenberg_marquardt(
@@ -36,6 +40,7 @@ def levenberg_marquardt(
     progress=None,
     initial=None,
     lam0: float = 1e-3,
+    huber: float = math.inf,
 ):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
@@ -49,6 +54,15 @@ def levenberg_marquardt(
     push-release, from where a Gauss-Newton fit had stopped, 25 more Gauss-Newton iterations
     gained 0.02 and moved the unknowns 0.15 standard errors; with this model the fit reaches that
     point in half the iterations, and the loss gains no more than 1e-3 by its linearisation.
+
+    Residuals transformed by a Huber loss of threshold ``huber`` (`robust.huber`: ``0.5 r^2`` is
+    the loss, ``|r| > huber`` beyond the threshold) keep the loss's own curvature: a row beyond
+    the threshold, where the loss grows linearly, adds to the gradient but not to the model's
+    Hessian (its Gauss-Newton term ``(h' J_z)^T (h' J_z)`` is cancelled by the transform's own
+    curvature ``r h''``), and the secant estimates the curvature of the whitened residuals
+    alone. With the Gauss-Newton term kept, each such row makes the steps too short: on a
+    Triskele actuator step simulated on a finer grid (8 of 684 rows beyond), the fit crawled
+    7 iterations to its optimum; with the loss's curvature, 2.
 
     Converged: when the Gauss-Newton decrement ``0.5 g^T (J^T J)^+ g`` (the cost the linearised
     problem could still gain; ``0.5 (delta / SE)^2`` for a parameter ``delta`` off a quadratic
@@ -74,14 +88,14 @@ def levenberg_marquardt(
         )
     if not history:
         history.append(cost)
-    converged = decrement(J, r) < ftol * cost
+    converged = decrement(J, r, huber) < ftol * cost
     it = it0
     for it in range(it0 + 1, max_iter + 1):
         if converged:
             it -= 1
             break
         g = J.T @ r
-        A = J.T @ J
+        A = _gauss_newton(J, r, huber)
         model = A + S
         accepted = False
         scale = np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
@@ -108,7 +122,7 @@ def levenberg_marquardt(
         r_new, J_new = (np.asarray(a) for a in rj(jnp.asarray(theta)))
         if not (np.all(np.isfinite(r_new)) and np.all(np.isfinite(J_new))):
             raise FitError("the Jacobian at an accepted step is not finite (its tangent solves did not converge)")
-        S = _secant_update(S, step, J_new.T @ r_new - g, (J_new - J).T @ r_new)
+        S = _secant_update(S, step, J_new.T @ r_new - g, (J_new - _rescaled(J, r, r_new, huber)).T @ r_new)
         r, J = r_new, J_new
         cost = 0.5 * float(r @ r)
         history.append(cost)
@@ -116,15 +130,33 @@ def levenberg_marquardt(
             save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist()))
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
-        converged = decrement(J, r) < ftol * cost or np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
+        converged = decrement(J, r, huber) < ftol * cost or np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
     return theta, J, r, it, converged, history
 
 
-def decrement(J, r) -> float:
-    """``0.5 g^T (J^T J)^+ g``, g = J^T r: what the Gauss-Newton step would gain on the linearised
-    problem (the columns scaled to unit norm for the pseudo-inverse)."""
+def decrement(J, r, huber: float = math.inf) -> float:
+    """``0.5 g^T A^+ g``, g = J^T r: what the Gauss-Newton step would gain on the linearised
+    problem (the columns scaled to unit norm for the pseudo-inverse); ``A`` the Gauss-Newton
+    Hessian of the rows within the Huber threshold ``huber`` (`_gauss_newton`)."""
     g = J.T @ r
-    return 0.5 * float(g @ covariance(J) @ g)
+    return 0.5 * float(g @ _inverse(_gauss_newton(J, r, huber)) @ g)
+
+
+def _gauss_newton(J, r, huber: float):
+    """``J^T J`` over the rows whose Huber-transformed residual ``r`` lies within the threshold
+    ``huber``: the loss is linear in the whitened residual beyond it, which adds no curvature."""
+    inner = np.abs(r) <= huber
+    return J.T @ J if inner.all() else J[inner].T @ J[inner]
+
+
+def _rescaled(J_old, r_old, r_new, huber: float):
+    """``J_old`` with each row's Huber slope ``h'`` (1 within the threshold, ``huber / |r|``
+    beyond) that of ``r_new``: ``J_new - _rescaled(...)`` is then the change of the whitened
+    residuals' Jacobian, weighted as now (what the secant of their curvature needs)."""
+    if np.all(np.abs(r_old) <= huber) and np.all(np.abs(r_new) <= huber):
+        return J_old
+    slope = lambda r: np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-300))  # noqa: E731
+    return J_old * (slope(r_new) / slope(r_old))[:, None]
 
 
 def _damped_step(model, scale, g, lam):

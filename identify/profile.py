@@ -78,13 +78,16 @@ def _crossing(x, rise, m, direction) -> tuple[float, int]:
     return math.nan, -1
 
 
-def profile(rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, max_iter: int = 30, progress=None) -> Profile:
+def profile(
+    rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, max_iter: int = 30, progress=None, huber=math.inf
+) -> Profile:
     """The `Profile` of ``theta[index]`` about the optimum ``theta`` (residuals ``r``, Jacobian
     ``J``) of ``0.5 |rf(theta)|^2``, ``rj(theta) = (residual, Jacobian)``; ``se`` its standard
     error, ``chi2`` the reduced chi-square that scales the levels, ``max_step`` the fit's step
     bounds (one per unknown). Each crossing of the level is evaluated once more where the walk's
     points put it, and placed again with that point. ``progress(held value, cost)`` after each
-    point."""
+    point. ``huber``: the threshold of the Huber loss the residuals are transformed by
+    (`least_squares.levenberg_marquardt`)."""
     theta = np.asarray(theta, float)
     others = np.arange(theta.size) != index
     max_step = np.broadcast_to(np.asarray(max_step, float), theta.shape)
@@ -118,12 +121,13 @@ def profile(rf, rj, theta, J, r, index: int, se: float, chi2: float, max_step, m
                 max_iter,
                 ftol=tol,
                 max_step=max_step[others],
+                huber=huber,
             )
         except FitError:
             return None
         # out of iterations, or stopped where no damped step lowered the cost (which the fitter
         # also calls converged) with the linearised problem still gaining more than tol
-        if not converged or decrement(jac_y, r_y) > tol * cost0:
+        if not converged or decrement(jac_y, r_y, huber) > tol * cost0:
             return None
         cost = 0.5 * float(r_y @ r_y)
         if progress is not None:
@@ -243,6 +247,7 @@ def report(pb, theta, J, r, chi2: float, se_theta, progress=None) -> tuple[dict,
                 chi2,
                 pb.max_step,
                 progress=say,
+                huber=pb.huber,
             )
             entries.append(
                 dict(

@@ -7,6 +7,8 @@ is where that rises by 1/2 above its minimum (found here by `scipy.optimize.bren
 profile of the amplitude is checked against SciPy's bounded scalar minimiser over the rate.
 """
 
+import math
+
 import numpy as np
 import pytest
 from scipy.optimize import brentq, minimize_scalar
@@ -149,6 +151,7 @@ def test_a_fit_whose_profile_walks_into_a_lower_minimum_moves_there(monkeypatch)
         max_step=np.full(2, np.inf),
         measured=np.array([True, True]),
         counted=lambda t_end: m0 + 3,
+        huber=math.inf,  # least squares
     )
 
     def summary(pb, theta, J, r, iterations, converged, history, stages, notes=()):
