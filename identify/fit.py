@@ -111,6 +111,12 @@ def modal_start(
 # that window's SE of its optimum. A window's optimum is only the next window's start, which
 # moves further than that: a tighter stop there costs an iteration per window and gains nothing.
 FINAL_FTOL = 2e-3
+# The least-squares pass over the whole recording gives only the noise levels (from its
+# residuals) and the start of the pass weighted by them, so it stops within about one standard
+# error of its optimum (decrement below half the reduced chi-square). That adds about half a
+# reduced chi-square to a sum over hundreds of residuals: the noise levels estimated from them
+# move by a percent or less. The answer is the re-weighted pass's, to its own stop.
+NOISE_PASS_FTOL = 0.5
 
 
 # A released push fitted this far (relative) from the sidecar's is no measurement error: the fit
@@ -333,7 +339,7 @@ def fit(
                 lambda th, pb=pb, t_end=t_end: pb.residual_and_jacobian(th, t_end),
                 theta,
                 max_iter,
-                ftol=FINAL_FTOL / pb.counted(t_end),
+                ftol=(NOISE_PASS_FTOL if k == len(stages) - 2 else FINAL_FTOL) / pb.counted(t_end),
                 max_step=pb.max_step,
                 start=resume if k == done else None,
                 save=lambda st, k=k: save(st, k),

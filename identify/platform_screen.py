@@ -176,13 +176,13 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
         cost = jax.vmap(lambda lt: jnp.sum(jnp.square(motion.residual(rest, w, phi, lt))))(log_taus)
         return jnp.where(ok, cost, jnp.inf)
 
-    @jax.jit
-    def residual_at(modes, log_tau):
-        rest, w, phi, ok = modes
-        return jnp.where(ok, motion.residual(rest, w, phi, log_tau), jnp.nan)
+    def residual_at(y):
+        rest, w, phi, ok = modes_of(y[:-1])
+        return jnp.where(ok, motion.residual(rest, w, phi, y[-1]), jnp.nan)
 
-    def residual(y):
-        return residual_at(modes_of(y[:-1]), y[-1])
+    # The polish's model, (log lengths, log tau) -> whitened residuals, is one program with its
+    # trace kept on disk: it reads the scene and the recording (its free motion).
+    residual = traces.jit(residual_at, "identify-polish", (problem.scene, problem.rec), (identify,))
 
     def with_jacobian(y):
         y = np.asarray(y, float)
