@@ -125,8 +125,8 @@ def test_lumped_damping_is_tau_times_the_stiffness():
 
 def test_lumped_modes_from_the_push_hold_where_the_straight_rod_continuation_is_lost():
     """Near `triskele_push_release_r2`'s truth the static solve's continuation from straight rods
-    loses its path at about a third of the lengths (the polish crawled there: two of three of
-    its steps and finite differences failed). The rest reached from the pushed equilibrium
+    loses its path at about a third of the lengths (the polish crawled there: about half its
+    trial steps were rejected). The rest reached from the pushed equilibrium
     (`platform_screen.lumped_modes(from_push=True)`, the polish's fallback) holds at every one.
     Oracle: the same rest solved by a continuation four times finer without the screen's early
     stop (which holds there), and the plain path's modes where it holds (1e-9)."""
