@@ -45,6 +45,7 @@ from pcrjax.robots import statics
 
 from . import experiment
 from .least_squares import FitError, levenberg_marquardt
+from .problem import padded_frames
 
 SCREENED = 1024  # sets of lengths screened (the nominal ones and a Latin hypercube)
 TAUS = 25  # tau values screened per set of lengths, log-spaced over the prior's range
@@ -82,6 +83,11 @@ def lumped_modes(scene, from_push: bool = False):
     its path near some lengths (a third of those within 0.2 % of triskele_push_release_r2's
     truth), which the path from the push does not. Over the whole prior it costs about twice as
     much, so the screen does without it and the polish takes it where the plain solve fails."""
+    return jax.jit(lambda log_lengths: modes(scene, log_lengths, from_push))
+
+
+def modes(scene, log_lengths, from_push: bool = False):
+    """`lumped_modes` of ``scene`` at ``log lengths`` (traceable in both)."""
     body = scene.end.body
     mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
     scene = for_screening(scene)
@@ -92,27 +98,23 @@ def lumped_modes(scene, from_push: bool = False):
         moment = scale * s.load.moment + jnp.zeros(3).at[2].set(wrench[2])
         return eqx.tree_at(lambda s: (s.load.force, s.load.moment), s, (force, moment))
 
-    @jax.jit
-    def modes_of(log_lengths):
-        L = jnp.exp(log_lengths)
+    L = jnp.exp(log_lengths)
 
-        near = None
-        if from_push:
-            _, _, pushed = planar_rest(loaded(L, 1.0, jnp.zeros(3)))
-            _, _, near = planar_rest(loaded(L, 0.5, jnp.zeros(3)), near=pushed)
+    near = None
+    if from_push:
+        _, _, pushed = planar_rest(loaded(L, 1.0, jnp.zeros(3)))
+        _, _, near = planar_rest(loaded(L, 0.5, jnp.zeros(3)), near=pushed)
 
-        def pose(wrench):  # the rest pose and its convergence ride along as aux: one static solve
-            p, ok, _ = planar_rest(loaded(L, 0.0, wrench), near=near)
-            return p, (p, ok)
+    def pose(wrench):  # the rest pose and its convergence ride along as aux: one static solve
+        p, ok, _ = planar_rest(loaded(L, 0.0, wrench), near=near)
+        return p, (p, ok)
 
-        C, (rest, ok) = jax.jacfwd(pose, has_aux=True)(jnp.zeros(3))
-        K = jnp.linalg.inv(C)
-        K = 0.5 * (K + K.T)
-        r = 1.0 / jnp.sqrt(mass)
-        w2, v = jnp.linalg.eigh(r[:, None] * K * r[None, :])
-        return rest, jnp.sqrt(jnp.maximum(w2, 0.0)), r[:, None] * v, ok & jnp.all(jnp.isfinite(w2))
-
-    return modes_of
+    C, (rest, ok) = jax.jacfwd(pose, has_aux=True)(jnp.zeros(3))
+    K = jnp.linalg.inv(C)
+    K = 0.5 * (K + K.T)
+    r = 1.0 / jnp.sqrt(mass)
+    w2, v = jnp.linalg.eigh(r[:, None] * K * r[None, :])
+    return rest, jnp.sqrt(jnp.maximum(w2, 0.0)), r[:, None] * v, ok & jnp.all(jnp.isfinite(w2))
 
 
 def platform_modes(scene):
@@ -148,20 +150,40 @@ class FreeMotion:
         self.data = jnp.asarray(((pose[active] - self.settled) / self.sigma).reshape(-1))
         self.rows = int(self.data.size)
 
+    def arrays(self, frames: int | None = None):
+        """(times, whitened data, weights, noise levels, settled pose): what `free_residual`
+        reads, padded with frames of weight 0 up to ``frames``."""
+        n = int(self.t.size)
+        extra = (n if frames is None else frames) - n
+        return (
+            jnp.concatenate([self.t, jnp.zeros(extra)]),
+            jnp.concatenate([self.data, jnp.zeros(3 * extra)]),
+            jnp.concatenate([jnp.ones(n), jnp.zeros(extra)]),
+            jnp.asarray(self.sigma),
+            jnp.asarray(self.settled),
+        )
+
     def residual(self, rest, w, phi, log_tau):
         """Whitened residuals (rows,) of the best amplitudes for the modes ``(w, phi)`` about the
         rest pose ``rest`` at damping ``exp(log_tau)``."""
-        beta = self.settled[2] - rest[2]
-        c, s = jnp.cos(beta), jnp.sin(beta)
-        seen = jnp.stack([c * phi[0] - s * phi[1], s * phi[0] + c * phi[1], phi[2]]) / jnp.asarray(self.sigma)[:, None]
-        zeta = 0.5 * jnp.exp(log_tau) * w
-        decay, wd = zeta * w, w * jnp.sqrt(jnp.clip(1.0 - zeta**2, 1e-12))
-        env = jnp.exp(-decay[None, :] * self.t[:, None])
-        phase = wd[None, :] * self.t[:, None]
-        waves = jnp.stack([env * jnp.cos(phase), env * jnp.sin(phase)], axis=-1)  # (frames, modes, 2)
-        A = (seen[None, :, :, None] * waves[:, None, :, :]).reshape(self.rows, -1)  # rows: frames x channels
-        amps = jnp.linalg.lstsq(A, self.data)[0]
-        return self.data - A @ amps
+        return free_residual(self.arrays(), rest, w, phi, log_tau)
+
+
+def free_residual(motion, rest, w, phi, log_tau):
+    """`FreeMotion.residual` of the free ``motion`` (`FreeMotion.arrays`; a frame of weight 0
+    counts for nothing and its residuals are 0)."""
+    t, data, weight, sigma, settled = motion
+    beta = settled[2] - rest[2]
+    c, s = jnp.cos(beta), jnp.sin(beta)
+    seen = jnp.stack([c * phi[0] - s * phi[1], s * phi[0] + c * phi[1], phi[2]]) / sigma[:, None]
+    zeta = 0.5 * jnp.exp(log_tau) * w
+    decay, wd = zeta * w, w * jnp.sqrt(jnp.clip(1.0 - zeta**2, 1e-12))
+    env = jnp.exp(-decay[None, :] * t[:, None]) * weight[:, None]
+    phase = wd[None, :] * t[:, None]
+    waves = jnp.stack([env * jnp.cos(phase), env * jnp.sin(phase)], axis=-1)  # (frames, modes, 2)
+    A = (seen[None, :, :, None] * waves[:, None, :, :]).reshape(data.size, -1)  # rows: frames x channels
+    amps = jnp.linalg.lstsq(A, data)[0]
+    return data - A @ amps
 
 
 def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, seed: int = 0, warm=None):
@@ -176,34 +198,30 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     motion = FreeMotion(problem.rec, max([experiment.forcing_end(problem.scene), *events]))
     if warm is not None:
         warm()
-    modes_of = lumped_modes(problem.scene)
     x0 = np.asarray(theta[i_len], float)
     tau0 = float(np.mean(np.asarray(problem.fixed["tau"])))
     log_taus = jnp.asarray(np.log(tau0) + np.linspace(-1.0, 1.0, TAUS) * np.log(tau_range))
+    # The programs take the scene (its leaves) and the free motion (padded like the full
+    # model's frames, `problem.padded_frames`) as arguments: recordings of one robot share them.
+    leaves, tree = jax.tree.flatten(problem.scene)
+    free = motion.arrays(padded_frames(int(motion.t.size)))
 
-    @jax.jit
-    def costs(modes):
-        rest, w, phi, ok = modes
-        cost = jax.vmap(lambda lt: jnp.sum(jnp.square(motion.residual(rest, w, phi, lt))))(log_taus)
-        return jnp.where(ok, cost, jnp.inf)
-
-    def residual_of(lumped):
-        def residual_at(y):
-            rest, w, phi, ok = lumped(y[:-1])
-            return jnp.where(ok, motion.residual(rest, w, phi, y[-1]), jnp.nan)
+    def residual_of(from_push):
+        def residual_at(leaves, free, y):
+            rest, w, phi, ok = modes(jax.tree.unflatten(tree, leaves), y[:-1], from_push)
+            return jnp.where(ok, free_residual(free, rest, w, phi, y[-1]), jnp.nan)
 
         return residual_at
 
     # The polish's model, (log lengths, log tau) -> whitened residuals, is one program with its
-    # trace kept on disk (it reads the scene and the recording's free motion); where its static
-    # solve fails, the rest reached from the push (`lumped_modes`), a program compiled only then.
-    closure = (problem.scene, problem.rec)
-    plain = traces.jit(residual_of(modes_of), "identify-polish", closure, (identify,))
-    from_push = traces.jit(residual_of(lumped_modes(problem.scene, from_push=True)), "identify-polish-push", closure, (identify,))
+    # trace kept on disk; where its static solve fails, the rest reached from the push
+    # (`lumped_modes`), a program compiled only then.
+    plain = traces.jit(residual_of(False), "identify-polish", str(tree), (identify,))
+    from_push = traces.jit(residual_of(True), "identify-polish-push", str(tree), (identify,))
 
     def residual(y):
-        r = plain(y)
-        return r if bool(jnp.all(jnp.isfinite(r))) else from_push(y)
+        r = plain(leaves, free, y)
+        return (r if bool(jnp.all(jnp.isfinite(r))) else from_push(leaves, free, y))[: motion.rows]
 
     def with_jacobian(y):
         y = np.asarray(y, float)
@@ -220,6 +238,7 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
         return y, float(r @ r) if inside else np.inf
 
     cands = np.log(latin_hypercube(np.exp(x0), prior_length, SCREENED, seed))
+
     # One static solve and its compliance per candidate, one after another in one program
     # (`lax.map`): a call per candidate would wait for the interpreter lock at every call while
     # the fit's Jacobian is traced in a thread beside it. Not `vmap`: a batch runs every member
@@ -227,13 +246,18 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     # started from a solved neighbour instead misses a few percent of the prior, in the corner
     # where one rod is short (triskele_push_release_r2's truth lies there).
     # The program reads the scene, the recording (its free motion) and the tau grid.
-    all_costs = traces.jit(
-        lambda xs: jax.lax.map(lambda x: costs(modes_of(x)), xs),
-        "identify-screen",
-        (problem.scene, problem.rec, log_taus),
-        (identify,),
-    )
-    screened = np.asarray(all_costs(jnp.asarray(cands)))
+    def all_costs(leaves, free, log_taus, xs):
+        scene = jax.tree.unflatten(tree, leaves)
+
+        def costs(x):
+            rest, w, phi, ok = modes(scene, x)
+            cost = jax.vmap(lambda lt: jnp.sum(jnp.square(free_residual(free, rest, w, phi, lt))))(log_taus)
+            return jnp.where(ok, cost, jnp.inf)
+
+        return jax.lax.map(costs, xs)
+
+    screen_all = traces.jit(all_costs, "identify-screen", str(tree), (identify,))
+    screened = np.asarray(screen_all(leaves, free, log_taus, jnp.asarray(cands)))
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)

@@ -60,6 +60,20 @@ CLOCK_ITER, CLOCK_BEST = 12, 3
 LINEAR = ("push_force", "push_moment", "start_position", "start_angle")
 CAMERA = tuple(c[0] for c in CAMERA_UNKNOWNS)
 NUISANCE = ("push_force", "push_moment", *CAMERA)  # fitted, but not what a fit is for
+# The programs' frames and steps are padded up to multiples of these, so that recordings of one
+# robot and experiment whose lengths differ a little (a few frames lost, a second more) share the
+# compiled programs: padded frames count for nothing, padded steps are not simulated.
+FRAME_BLOCK, STEP_BLOCK = 64, 512
+
+
+def padded_frames(frames: int) -> int:
+    """The programs' frame count for a recording of ``frames``."""
+    return FRAME_BLOCK * -(-frames // FRAME_BLOCK)
+
+
+def span(seconds: float, dt: float) -> float:
+    """The simulated span (s) that covers ``seconds`` in whole blocks of STEP_BLOCK steps of ``dt``."""
+    return STEP_BLOCK * math.ceil(seconds / dt / STEP_BLOCK - 1e-9) * dt
 
 
 def frame_transform(robot_start, vals):
@@ -94,6 +108,8 @@ class Problem:
 
     A problem does not change: its noise levels and Huber threshold (`with_noise`) and the
     frames that count (`with_frames`) are set on a copy, which shares the compiled programs.
+    Those take the scene and the frames as arguments (`_program`): a problem of another
+    recording of the same robot and experiment runs them too, with no trace or compilation.
     """
 
     def __init__(self, rec: Recording, fit: tuple[str, ...], scene=None, initial: dict | None = None):
@@ -104,7 +120,7 @@ class Problem:
             raise RecordingError("--fit: tau (shared), tau_per_rod and tau_split exclude each other")
         self.rec = rec
         sc = scene if scene is not None else experiment.build_scene(rec)
-        self.scene = experiment.with_duration(sc, experiment.required_duration(rec))
+        self.scene = experiment.with_duration(sc, span(experiment.required_duration(rec), float(sc.solver.dt)))
         nom = experiment.nominal(self.scene)
         n_rods = int(np.size(nom["lengths"]))
         self.fit = tuple(fit)
@@ -138,18 +154,43 @@ class Problem:
         self.huber = robust.NONE  # Huber threshold in noise levels (NONE: least squares)
         self.keep = np.ones(rec.t.size, bool)  # frames that count (all; fewer to study missing frames)
         self.sigma.flags.writeable = self.keep.flags.writeable = False
-        # compiled once per problem: the noise and the window are arguments. The programs read
-        # the recording, the unknowns and the scene (all set above from rec, fit and the scene),
-        # so those name their traces on disk (`pcrjax.traces`).
-        closure = (rec, self.fit, self.scene)
-        keep = lambda f, name: traces.jit(f, f"identify-{name}", closure, (identify,))  # noqa: E731
-        self._residual = keep(self._residual_fn, "residual")
-        self._residual_and_jacobian = keep(self._residual_and_jacobian_fn, "jacobian")
-        self._linear_residual = keep(self._linear_residual_fn, "linear-residual")
-        self._linear_jacobian = keep(jax.jacfwd(self._linear_residual_fn), "linear-jacobian")
-        self._clock_scan = keep(self._clock_scan_fn, "clock-scan")
-        self._frame = keep(self._frame_fn, "frame")
+        # The programs take the scene and the frames as arguments (`_program`), beside the noise
+        # and the window, so recordings of one robot and experiment share them.
+        extra = padded_frames(rec.t.size) - rec.t.size
+        leaves, self._scene_tree = jax.tree.flatten(self.scene)
+        self._env = (
+            leaves,
+            jnp.concatenate([self.t, jnp.full(extra, self.t[-1])]),
+            jnp.concatenate([self.data, jnp.zeros((extra, 3))]),
+        )
+        self._residual = self._program(Problem._residual_fn, "residual")
+        self._residual_and_jacobian = self._program(Problem._residual_and_jacobian_fn, "jacobian")
+        self._linear_residual = self._program(Problem._linear_residual_fn, "linear-residual")
+        self._linear_jacobian = self._program(jax.jacfwd(Problem._linear_residual_fn, argnums=1), "linear-jacobian")
+        self._clock_scan = self._program(Problem._clock_scan_fn, "clock-scan")
+        self._frame = self._program(Problem._frame_fn, "frame")
         self.initial_values = self._initial_values({**nom, **materials}, initial or {})
+
+    def _program(self, method, name: str):
+        """``method(problem, *args)`` as a compiled program of the scene, the frames (padded,
+        `padded_frames`) and ``args``, called with this problem's. Besides its arguments the
+        program reads only the unknowns and the camera's exposure: those name its trace on disk
+        (`pcrjax.traces`), and a recording of the same robot and experiment with as many padded
+        frames and steps reuses it, and its compilation."""
+        base = self
+
+        def program(env, *args):
+            pb = copy.copy(base)
+            leaves, pb.t, pb.data = env
+            pb.scene = jax.tree.unflatten(base._scene_tree, leaves)
+            pb.fixed = experiment.nominal(pb.scene)
+            return method(pb, *args)
+
+        # the scene travels as its leaves (a program kept on disk cannot rebuild equinox modules
+        # from its own record of the arguments' structure); the structure is part of its name
+        closure = (str(self._scene_tree), self.fit, self.unknowns, self.rec.experiment, self.rec.exposure)
+        run = traces.jit(program, f"identify-{name}", closure, (identify,))
+        return lambda *args: run(self._env, *args)
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
@@ -246,6 +287,11 @@ class Problem:
         mask = self.keep & (np.arange(self.t.size) < n)
         return jnp.asarray(mask, jnp.float64), jnp.asarray(min(steps, int(math.ceil(need / dt)) + 3), jnp.int32)
 
+    def _window(self, t_end: float | None = None):
+        """`window` with the mask padded to the programs' frames."""
+        mask, active = self.window(t_end)
+        return jnp.concatenate([mask, jnp.zeros(self._env[1].size - mask.size)]), active
+
     def counted(self, t_end: float | None = None) -> int:
         """Residuals that count in the window up to ``t_end``."""
         return 3 * int(np.sum(np.asarray(self.window(t_end)[0])))
@@ -300,21 +346,22 @@ class Problem:
 
     def residual(self, theta, t_end=None):
         """Weighted residuals (M * 3,) at ``theta`` over the frames up to ``t_end`` (None: all)."""
-        return self._residual(jnp.asarray(theta), self._noise(), *self.window(t_end))[0]
+        return self._residual(jnp.asarray(theta), self._noise(), *self._window(t_end))[0][: 3 * self.t.size]
 
     def motion(self, theta, t_end):
         """Simulated planar poses (robot frame) every dt up to ``t_end`` (same compiled program)."""
-        m = self._residual(jnp.asarray(theta), self._noise(), *self.window(t_end))[1]
+        m = self._residual(jnp.asarray(theta), self._noise(), *self._window(t_end))[1]
         return np.asarray(m)[: int(round(t_end / self.scene.solver.dt)) + 1]
 
     def residual_and_jacobian(self, theta, t_end=None):
-        return self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self.window(t_end))[:2]
+        r, J = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self._window(t_end))[:2]
+        return r[: 3 * self.t.size], J[: 3 * self.t.size]
 
     def frame(self, theta):
         """(values, Jacobian wrt theta) of the pattern frame's offset (2) and rotation (1), derived
         from the start pose and the model's pose at t = 0 (its tangents from the compiled
         Jacobian on the shortest window: a few steps)."""
-        _, _, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self.window(0.0))
+        _, _, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self._window(0.0))
         f, d_m0, d_tc = (np.asarray(a) for a in self._frame(jnp.asarray(theta), m0))
         return f, np.concatenate([d_m0 @ np.asarray(dm0), d_tc], axis=1)
 
@@ -340,7 +387,7 @@ class Problem:
         fails."""
         theta = np.asarray(theta, float)
         n, noise = self.n_physical, self._noise()
-        mask, active = self.window(t_end)
+        mask, active = self._window(t_end)
         push = np.concatenate(
             [np.arange(n)[self.slices[k]] for k in ("push_force", "push_moment") if k in self.slices] or [np.zeros(0, int)]
         )
@@ -355,8 +402,9 @@ class Problem:
         m0, dm = motions[0], jnp.stack([m - motions[0] for m in motions[1:]], axis=-1) if push.size else None
         x0 = np.concatenate([theta[push], theta[n:]])
         args = (m0, dm, jnp.asarray(theta), jnp.asarray(push), noise, mask)
-        rf = lambda x: self._linear_residual(x, *args)  # noqa: E731
-        rj = lambda x: (rf(x), self._linear_jacobian(x, *args))  # noqa: E731
+        rows = 3 * self.t.size  # the programs' padded frames left out
+        rf = lambda x: self._linear_residual(x, *args)[:rows]  # noqa: E731
+        rj = lambda x: (rf(x), self._linear_jacobian(x, *args)[:rows])  # noqa: E731
         starts = [x0]
         if clocks is not None and "time_offset" in self.slices:
             i_clock = push.size + self.slices["time_offset"].start - n

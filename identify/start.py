@@ -47,6 +47,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -93,29 +94,32 @@ def frame_invariant(shift):
     return jnp.stack([jnp.hypot(shift[0], shift[1]), jnp.abs(shift[2])])
 
 
-def _shift_of(scene):
-    """``log lengths -> frame_invariant`` of the static equilibrium after the actuators' moves
-    relative to the one before (m and rad); NaN where a static solve fails."""
-    end = scene.actuation(jnp.asarray(experiment.forcing_end(scene)))
+def _shift(scene, t_end, log_lengths):
+    """The frame_invariant of the static equilibrium of ``scene`` at ``log lengths`` after the
+    actuators' moves (which end at ``t_end``) relative to the one before (m and rad); NaN where
+    a static solve fails."""
+    end = scene.actuation(t_end)
     held = Actuation(
         initial=end, final=end, start=jnp.zeros_like(end), duration=jnp.ones_like(end), kinds=("constant",) * end.shape[0]
     )
     after = eqx.tree_at(lambda s: s.actuation, scene, held)
-
-    def shift(log_lengths):
-        lengths = {"lengths": jnp.exp(log_lengths)}
-        a, ok_a, x = planar_rest(experiment.apply(scene, lengths))
-        b, ok_b, _ = planar_rest(experiment.apply(after, lengths), near=x)  # a small move: Newton from the rest before it
-        return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
-
-    return shift
+    lengths = {"lengths": jnp.exp(log_lengths)}
+    a, ok_a, x = planar_rest(experiment.apply(scene, lengths))
+    b, ok_b, _ = planar_rest(experiment.apply(after, lengths), near=x)  # a small move: Newton from the rest before it
+    return jnp.where(ok_a & ok_b, frame_invariant(b - a), jnp.nan)
 
 
 def static_shift(scene):
-    """`_shift_of` ``scene``, compiled (its trace kept on disk, `pcrjax.traces`), for one set of
-    log lengths. A static solve whose continuation loses its path ends there, not retried
-    (`platform_screen.for_screening`): the screen passes over such lengths."""
-    return traces.jit(_shift_of(platform_screen.for_screening(scene)), "identify-static-shift", (scene,), (identify,))
+    """``log lengths ->`` `_shift` of ``scene``, compiled (its trace kept on disk,
+    `pcrjax.traces`; the scene is an argument, so scenes of one robot share it). A static solve
+    whose continuation loses its path ends there, not retried (`platform_screen.for_screening`):
+    the screen passes over such lengths."""
+    leaves, tree = jax.tree.flatten(platform_screen.for_screening(scene))
+    t_end = jnp.asarray(experiment.forcing_end(scene), jnp.float64)
+    run = traces.jit(
+        lambda leaves, t, x: _shift(jax.tree.unflatten(tree, leaves), t, x), "identify-static-shift", str(tree), (identify,)
+    )
+    return lambda log_lengths: run(leaves, t_end, log_lengths)
 
 
 class Features:

@@ -632,6 +632,31 @@ def test_cli_fits_a_short_triskele_push_release_from_a_finer_grid_end_to_end(tmp
     assert not (out / "fit_state.json").exists()
 
 
+def test_recordings_of_one_robot_share_the_fits_programs(tmp_path, monkeypatch):
+    """A second recording of the same robot and experiment, with other frames (three lost), other
+    poses and other sidecar values (the recorded push, the damping to start from), runs the first
+    one's residual program: one program on disk, no new compilation. And that program reads the
+    second recording's own frames: where its poses are the first's moved by ``d``, at the same
+    unknowns its residuals are the first's less ``d / sigma``, frame by frame."""
+    from pcrjax import config
+
+    monkeypatch.setattr(config, "_traces", tmp_path)
+    a = load_recording(f"{DATA}/cantilever_release.csv").window(0.03)
+    keep = np.ones(a.t.size, bool)
+    keep[[5, 11, 17]] = False
+    d = np.array([3e-6, -2e-6, 1e-5])
+    overrides = dict(a.overrides, tip=dict(a.overrides["tip"], force=[0.0, 0.0, -2.2]), rod=dict(tau=0.0012))
+    b = dataclasses.replace(a, t=a.t[keep], pose=a.pose[keep] + d, overrides=overrides)
+    pa, pb = Problem(a, ("tau", "lengths")), Problem(b, ("tau", "lengths"))
+    assert float(pb.initial_values["tau"]) == 0.0012 and float(pa.initial_values["tau"]) == 0.001
+    th = np.asarray(pa.to_theta(pa.initial_values))
+    ra = np.asarray(pa.residual(th)).reshape(-1, 3)
+    rb = np.asarray(pb.residual(th)).reshape(-1, 3)
+    assert len(list(tmp_path.glob("identify-residual-*"))) == 1
+    assert rb.shape == (a.t.size - 3, 3)
+    np.testing.assert_allclose(rb, ra[keep] - d / pa.sigma, rtol=1e-10, atol=1e-6)
+
+
 def test_split_damping_with_equal_times_is_the_shared_damping():
     """``--fit tau_split`` (stretch-shear and bend-twist damping apart): with both times equal the
     residuals are the shared tau's, and the two derivatives add up to the shared one's (the chain
