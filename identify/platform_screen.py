@@ -83,10 +83,10 @@ def lumped_modes(scene, from_push: bool = False):
     its path near some lengths (a third of those within 0.2 % of triskele_push_release_r2's
     truth), which the path from the push does not. Over the whole prior it costs about twice as
     much, so the screen does without it and the polish takes it where the plain solve fails."""
-    return jax.jit(lambda log_lengths: modes(scene, log_lengths, from_push))
+    return jax.jit(lambda log_lengths: lumped(scene, log_lengths, from_push))
 
 
-def modes(scene, log_lengths, from_push: bool = False):
+def lumped(scene, log_lengths, from_push: bool = False):
     """`lumped_modes` of ``scene`` at ``log lengths`` (traceable in both)."""
     body = scene.end.body
     mass = jnp.stack([body.mass, body.mass, body.inertia[2]])
@@ -208,7 +208,7 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
 
     def residual_of(from_push):
         def residual_at(leaves, free, y):
-            rest, w, phi, ok = modes(jax.tree.unflatten(tree, leaves), y[:-1], from_push)
+            rest, w, phi, ok = lumped(jax.tree.unflatten(tree, leaves), y[:-1], from_push)
             return jnp.where(ok, free_residual(free, rest, w, phi, y[-1]), jnp.nan)
 
         return residual_at
@@ -245,12 +245,12 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     # until its slowest has finished. Each solve runs the platform's load continuation: Newton
     # started from a solved neighbour instead misses a few percent of the prior, in the corner
     # where one rod is short (triskele_push_release_r2's truth lies there).
-    # The program reads the scene, the recording (its free motion) and the tau grid.
+    # The scene, the free motion and the tau grid are its arguments.
     def all_costs(leaves, free, log_taus, xs):
         scene = jax.tree.unflatten(tree, leaves)
 
         def costs(x):
-            rest, w, phi, ok = modes(scene, x)
+            rest, w, phi, ok = lumped(scene, x)
             cost = jax.vmap(lambda lt: jnp.sum(jnp.square(free_residual(free, rest, w, phi, lt))))(log_taus)
             return jnp.where(ok, cost, jnp.inf)
 
