@@ -201,14 +201,13 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     x0 = np.asarray(theta[i_len], float)
     tau0 = float(np.mean(np.asarray(problem.fixed["tau"])))
     log_taus = jnp.asarray(np.log(tau0) + np.linspace(-1.0, 1.0, TAUS) * np.log(tau_range))
-    # The programs take the scene (its leaves) and the free motion (padded like the full
-    # model's frames, `problem.padded_frames`) as arguments: recordings of one robot share them.
-    leaves, tree = jax.tree.flatten(problem.scene)
+    # The programs take the scene and the free motion (padded like the full model's frames,
+    # `problem.padded_frames`) as arguments: recordings of one robot share them.
     free = motion.arrays(padded_frames(int(motion.t.size)))
 
     def residual_of(from_push):
-        def residual_at(leaves, free, y):
-            rest, w, phi, ok = lumped(jax.tree.unflatten(tree, leaves), y[:-1], from_push)
+        def residual_at(scene, free, y):
+            rest, w, phi, ok = lumped(scene, y[:-1], from_push)
             return jnp.where(ok, free_residual(free, rest, w, phi, y[-1]), jnp.nan)
 
         return residual_at
@@ -216,12 +215,12 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     # The polish's model, (log lengths, log tau) -> whitened residuals, is one program with its
     # trace kept on disk; where its static solve fails, the rest reached from the push
     # (`lumped_modes`), a program compiled only then.
-    plain = traces.jit(residual_of(False), "identify-polish", str(tree), (identify,))
-    from_push = traces.jit(residual_of(True), "identify-polish-push", str(tree), (identify,))
+    plain = traces.jit_over(residual_of(False), "identify-polish", problem.scene, (), (identify,))
+    from_push = traces.jit_over(residual_of(True), "identify-polish-push", problem.scene, (), (identify,))
 
     def residual(y):
-        r = plain(leaves, free, y)
-        return (r if bool(jnp.all(jnp.isfinite(r))) else from_push(leaves, free, y))[: motion.rows]
+        r = plain(free, y)
+        return (r if bool(jnp.all(jnp.isfinite(r))) else from_push(free, y))[: motion.rows]
 
     def with_jacobian(y):
         y = np.asarray(y, float)
@@ -246,9 +245,7 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     # started from a solved neighbour instead misses a few percent of the prior, in the corner
     # where one rod is short (triskele_push_release_r2's truth lies there).
     # The scene, the free motion and the tau grid are its arguments.
-    def all_costs(leaves, free, log_taus, xs):
-        scene = jax.tree.unflatten(tree, leaves)
-
+    def all_costs(scene, free, log_taus, xs):
         def costs(x):
             rest, w, phi, ok = lumped(scene, x)
             cost = jax.vmap(lambda lt: jnp.sum(jnp.square(free_residual(free, rest, w, phi, lt))))(log_taus)
@@ -256,8 +253,8 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
 
         return jax.lax.map(costs, xs)
 
-    screen_all = traces.jit(all_costs, "identify-screen", str(tree), (identify,))
-    screened = np.asarray(screen_all(leaves, free, log_taus, jnp.asarray(cands)))
+    screen_all = traces.jit_over(all_costs, "identify-screen", problem.scene, (), (identify,))
+    screened = np.asarray(screen_all(free, log_taus, jnp.asarray(cands)))
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)

@@ -157,9 +157,7 @@ class Problem:
         # The programs take the scene and the frames as arguments (`_program`), beside the noise
         # and the window, so recordings of one robot and experiment share them.
         extra = padded_frames(rec.t.size) - rec.t.size
-        leaves, self._scene_tree = jax.tree.flatten(self.scene)
-        self._env = (
-            leaves,
+        self._frames = (
             jnp.concatenate([self.t, jnp.full(extra, self.t[-1])]),
             jnp.concatenate([self.data, jnp.zeros((extra, 3))]),
         )
@@ -177,20 +175,15 @@ class Problem:
         program reads only the unknowns and the camera's exposure: those name its trace on disk
         (`pcrjax.traces`), and a recording of the same robot and experiment with as many padded
         frames and steps reuses it, and its compilation."""
-        base = self
 
-        def program(env, *args):
-            pb = copy.copy(base)
-            leaves, pb.t, pb.data = env
-            pb.scene = jax.tree.unflatten(base._scene_tree, leaves)
-            pb.fixed = experiment.nominal(pb.scene)
+        def program(scene, t, data, *args):
+            pb = copy.copy(self)
+            pb.scene, pb.t, pb.data, pb.fixed = scene, t, data, experiment.nominal(scene)
             return method(pb, *args)
 
-        # the scene travels as its leaves (a program kept on disk cannot rebuild equinox modules
-        # from its own record of the arguments' structure); the structure is part of its name
-        closure = (str(self._scene_tree), self.fit, self.unknowns, self.rec.experiment, self.rec.exposure)
-        run = traces.jit(program, f"identify-{name}", closure, (identify,))
-        return lambda *args: run(self._env, *args)
+        closure = (self.fit, self.unknowns, self.rec.experiment, self.rec.exposure)
+        run = traces.jit_over(program, f"identify-{name}", self.scene, closure, (identify,))
+        return lambda *args: run(*self._frames, *args)
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
@@ -290,7 +283,7 @@ class Problem:
     def _window(self, t_end: float | None = None):
         """`window` with the mask padded to the programs' frames."""
         mask, active = self.window(t_end)
-        return jnp.concatenate([mask, jnp.zeros(self._env[1].size - mask.size)]), active
+        return jnp.concatenate([mask, jnp.zeros(self._frames[0].size - mask.size)]), active
 
     def counted(self, t_end: float | None = None) -> int:
         """Residuals that count in the window up to ``t_end``."""

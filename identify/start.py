@@ -47,7 +47,6 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -114,12 +113,9 @@ def static_shift(scene):
     `pcrjax.traces`; the scene is an argument, so scenes of one robot share it). A static solve
     whose continuation loses its path ends there, not retried (`platform_screen.for_screening`):
     the screen passes over such lengths."""
-    leaves, tree = jax.tree.flatten(platform_screen.for_screening(scene))
     t_end = jnp.asarray(experiment.forcing_end(scene), jnp.float64)
-    run = traces.jit(
-        lambda leaves, t, x: _shift(jax.tree.unflatten(tree, leaves), t, x), "identify-static-shift", str(tree), (identify,)
-    )
-    return lambda log_lengths: run(leaves, t_end, log_lengths)
+    run = traces.jit_over(_shift, "identify-static-shift", platform_screen.for_screening(scene), (), (identify,))
+    return lambda log_lengths: run(t_end, log_lengths)
 
 
 class Features:

@@ -167,3 +167,13 @@ def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = ()):
         return programs[sig](*args)
 
     return call
+
+
+def jit_over(fn, name: str, tree, closure, packages: tuple[ModuleType, ...] = ()):
+    """``fn(tree, *args)`` as a program of ``*args`` (`jit`) in which ``tree`` (a pytree, e.g. a
+    scene) is an argument too, passed as its leaves: a program kept on disk cannot rebuild
+    equinox modules from its own record of the arguments' structure, so ``tree``'s structure
+    names the program instead (beside ``closure``), and trees of that structure share it."""
+    leaves, structure = jax.tree.flatten(tree)
+    run = jit(lambda leaves, *args: fn(jax.tree.unflatten(structure, leaves), *args), name, (str(structure), closure), packages)
+    return lambda *args: run(leaves, *args)
