@@ -110,8 +110,9 @@ the truth; yet on the finest grid the truth, push and camera fitted, had a loss 
 answer's (at dt 0.25 ms, 23 above), with a barrier between (the loss 120 higher a fifth of the
 way across). So after the chains the start (where `fit.modal_start` put the measured values,
 with the answer's push and camera) contests the answer on the finest grid when it lies more than
-``RIVAL_SE`` standard errors away and, push and camera refitted, within ``WORSE`` times the
-answer's loss: it is refitted there like a chain's later refit, over the whole recording at once
+``RIVAL_SE`` standard errors from the fit's answer on the fit's grid (the fit left the start's
+basin) and from the answer on the finest grid, and, push and camera refitted, within ``WORSE``
+times the answer's loss: it is refitted there like a chain's later refit, over the whole recording at once
 from the start (the screen matched its phase over every frame), holding the fit's model's
 Jacobian at the start and then taking the finest model's own; only if that ends worse than
 ``WORSE`` through the fit's windows. An optimum whose loss is lower by more than
@@ -121,7 +122,10 @@ optimum the recording cannot tell apart.
 On r1 the start's optimum on the finest grid had a loss 6.1 below the answer's and lies 0.14
 standard errors from the truth's lengths (tau 0.99 SE), its own time moves at most 0.49 SE; the
 contest took 934 s (through the windows with the fit's Jacobian held: 2448 s, to a loss 0.6
-higher).
+higher). Where the fit ended near the start, the chains already followed the start's basin: on a
+noise draw of r1's truth simulated on the fit's grid, whose fit ended 0.3 standard errors from the
+start, a contest took 585 s of the 2340 s run (the time chain had moved the answer 11 standard
+errors) and refitted the start to an optimum worse than the answer's.
 """
 
 from __future__ import annotations
@@ -448,7 +452,9 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
 
 def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=lambda i: 0.0) -> bool:
     """Whether ``start`` (theta: where the fit began) takes the answer over from the chain's
-    (`refine`'s module text, "Rival basins"): on the finest grid its push and camera are fitted
+    (`refine`'s module text, "Rival basins"). It contests only where the fit's grid led more than
+    ``RIVAL_SE`` standard errors away from it and the chain's answer lies that far from it too.
+    Then on the finest grid its push and camera are fitted
     (`Problem.fit_linear`) and, unless it then fits more than ``WORSE`` times worse than the
     answer, it is refitted over the whole recording (`chord_refit` from the fit's model's Jacobian
     at it; through the windows if that ends more than ``WORSE`` times worse than the fit). That
@@ -461,7 +467,10 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
     if last.what != "time":
         return False
     far = np.max(np.abs((start - last.theta) / last.se)[problem.measured])
-    if far <= RIVAL_SE:
+    # where the fit ended within RIVAL_SE of the start (levels[0]: the fit's grid), the fit's grid
+    # kept the start's basin and the chains followed that basin to the finest grid
+    left_start = np.max(np.abs((start - levels[0].theta) / levels[0].se)[problem.measured])
+    if far <= RIVAL_SE or left_start <= RIVAL_SE:
         return False
     t0 = time.perf_counter()
     fine = last.problem

@@ -502,7 +502,9 @@ class TwoBasins(Linear):
         return sol.x, chi2, np.sqrt(np.diag(np.linalg.inv(sol.jac.T @ sol.jac)) * chi2)
 
 
-def _two_basins_report(flips: bool):
+def _two_basins_report(flips: bool, start=None):
+    """(the fit's grid's problem, its standard error, the report) of a fit that ended in the basin
+    near 0, having begun at ``start`` (default: x = 1, in the other basin)."""
     from identify.result import Result
 
     coarse = TwoBasins(10, 0.1, flips)
@@ -512,7 +514,7 @@ def _two_basins_report(flips: bool):
         labels=["x"], values=coarse.reported(theta), standard_errors={"x": float(se[0])}, correlation=[], sigma=[1.0, 1.0],
         loss=chi2, rms=[],
     )  # fmt: skip
-    start = np.array([1.0])  # where the fit began: the other basin
+    start = np.array([1.0]) if start is None else start(theta, se)
     return coarse, se, discretisation.report(coarse, theta, J, result, max_levels=2, rivals=[start])
 
 
@@ -538,6 +540,20 @@ def test_a_start_whose_basin_fits_worse_on_the_finest_grid_leaves_the_answer():
     whats = [r["refit"] for r in rep.refinements]
     assert whats[-1] == "rival" and whats.count("rival") == 1, whats
     assert abs(rep.values["x"]) < 0.01 and "fits better" not in rep.message and "as well" not in rep.message
+
+
+def test_a_start_in_the_basin_the_fit_ended_in_does_not_contest():
+    """The fit ended half a standard error from its start, in the basin near 0; the time chain
+    then moves the answer about 9 standard errors along that basin (its optimum a = C dt^2), so
+    the start lies far from the finest grid's answer, yet in the basin the chain followed: no
+    refit of the start (a contest would cost a whole refit on the finest grid and find the same
+    optimum), no second optimum reported, and the values are the chain's."""
+    _, se, rep = _two_basins_report(flips=True, start=lambda theta, se: theta + 0.5 * se)
+    whats = [r["refit"] for r in rep.refinements]
+    assert "rival" not in whats, whats
+    finest = rep.refinements[-1]
+    assert finest["refit"] == "time" and abs(finest["values"]["x"] - rep.refinements[0]["values"]["x"]) > 3 * se[0]
+    assert abs(rep.values["x"]) < 0.01 and "optimum" not in rep.message and "fits better" not in rep.message
 
 
 def test_the_sandwich_covariance_is_the_spread_of_a_fit_weighted_with_other_noise_levels():
