@@ -112,8 +112,8 @@ way across). So after the chains the start (where `fit.modal_start` put the meas
 with the answer's push and camera) contests the answer on the finest grid when it lies more than
 ``RIVAL_SE`` standard errors from the fit's answer on the fit's grid (the fit left the start's
 basin) and from the answer on the finest grid, and, push and camera refitted, within ``WORSE``
-times the answer's loss: it is refitted there like a chain's later refit, over the whole recording at once
-from the start (the screen matched its phase over every frame), holding the fit's model's
+times the answer's loss: it is refitted there like a chain's later refit, over the whole
+recording at once from the start (the screen matched its phase over every frame), holding the fit's model's
 Jacobian at the start and then taking the finest model's own; only if that ends worse than
 ``WORSE`` through the fit's windows. An optimum whose loss is lower by more than
 ``CLOSE`` takes the answer over, its time error measured by refits of its own at 2 and 4 times
@@ -466,11 +466,14 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
     last = levels[-1]
     if last.what != "time":
         return False
-    far = np.max(np.abs((start - last.theta) / last.se)[problem.measured])
+
+    def away(level):  # the start's distance from a level's values, in its standard errors
+        return np.max(np.abs((start - level.theta) / level.se)[problem.measured])
+
+    far = away(last)
     # where the fit ended within RIVAL_SE of the start (levels[0]: the fit's grid), the fit's grid
     # kept the start's basin and the chains followed that basin to the finest grid
-    left_start = np.max(np.abs((start - levels[0].theta) / levels[0].se)[problem.measured])
-    if far <= RIVAL_SE or left_start <= RIVAL_SE:
+    if far <= RIVAL_SE or away(levels[0]) <= RIVAL_SE:
         return False
     t0 = time.perf_counter()
     fine = last.problem
