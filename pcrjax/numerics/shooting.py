@@ -157,8 +157,10 @@ def shoot(layout: Layout, x, base_state, R_ref, rods: Rods, sc: Scales, return_s
 
 def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: Scales):
     """Tip states (n, 18) and directional derivatives (n, C, rows) of each leg's [junction
-    residuals, tip state (18)] along the C rows of ``seeds`` (C, size), by forward sensitivities
-    integrated with the rods (`integrate_tangents`, which carries the states themselves too)."""
+    residuals, tip state (18)] along the C rows of ``seeds`` (C, size, a NumPy array: which
+    segments each seed moves is static), by forward sensitivities integrated with the rods
+    (`integrate_tangents`, which carries the states themselves too)."""
+    seeds = np.asarray(seeds)
 
     def lin(fn, *args):  # fn's value at x and its derivatives along the seeds, per leg
         def one(x_i, *a):
@@ -172,7 +174,10 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: 
         return y_last[:, :18], Y_last[..., :18]
     restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
     RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
-    y_last, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT)
+    d = layout.segment_dim
+    cols = [slice(0, 6)] + [slice(6 + (k - 1) * d, 6 + k * d) for k in range(1, layout.segments)]
+    directions = tuple(tuple(int(c) for c in np.flatnonzero(seeds[:, cl].any(axis=1))) for cl in cols)
+    y_last, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT, directions)
 
     def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)
         jvp = lambda at, rt: jax.jvp(lambda aa, rr: junction_residuals(layout, aa, rr, sc), (a, r), (at, rt))[1]  # noqa: E731

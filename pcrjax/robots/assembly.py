@@ -99,7 +99,7 @@ class Problem:
         sparsity mask."""
         colours, mask = self.layout.colouring(extra_rows=TIP)
         _, colours = np.unique(colours, return_inverse=True)
-        seeds = jnp.asarray(np.eye(int(colours.max()) + 1)[colours].T)  # (C, S)
+        seeds = np.eye(int(colours.max()) + 1)[colours].T  # (C, S)
         tips, cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.rods, self.sc)
         return tips, jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
 
