@@ -5,7 +5,7 @@ and run time of the jitted rollout (a scalar of it: the end's final z) and of it
 respect to every rod's length and Young's modulus (implicit differentiation through every Newton
 solve), as `jax.grad` gets it (`rollout` takes few inputs' derivatives by forward columns) and
 in reverse mode (``forward_columns=0``), each against the rollout. Runs are timed after
-compilation, best of ``repeats``.
+compilation, best of ``repeats`` rounds that run the three in turn.
 """
 
 from __future__ import annotations
@@ -19,19 +19,25 @@ from ..io.scene_file import with_solver
 from ..simulation import FORWARD_COLUMNS, rollout
 
 
-def _timed(fn, *args, repeats: int = 3):
+def _compiled(fn, *args):
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    best = float("inf")
+    return compiled, time.perf_counter() - t0
+
+
+def _best_interleaved(programs, args, repeats: int):
+    """Best wall time of each compiled program over ``repeats`` rounds that run each once in
+    turn, so that a machine whose speed drifts during the benchmark moves them alike."""
+    best = [float("inf")] * len(programs)
     for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        best = min(best, time.perf_counter() - t)
-    return compile_s, best
+        for k, p in enumerate(programs):
+            t = time.perf_counter()
+            jax.block_until_ready(p(*args))
+            best[k] = min(best[k], time.perf_counter() - t)
+    return best
 
 
-def gradient_cost(scene, nodes: int, steps: int, repeats: int = 3) -> dict:
+def gradient_cost(scene, nodes: int, steps: int, repeats: int = 5) -> dict:
     s = with_solver(scene, nodes=nodes, integrator="rk4", duration=steps * float(scene.solver.dt))
     params = (s.legs.rod.length, s.legs.rod.youngs_modulus)
 
@@ -39,9 +45,10 @@ def gradient_cost(scene, nodes: int, steps: int, repeats: int = 3) -> dict:
         sc = eqx.tree_at(lambda q: (q.legs.rod.length, q.legs.rod.youngs_modulus), s, p)
         return rollout(sc, forward_columns=forward_columns).position[-1, 2]
 
-    fwd_c, fwd_s = _timed(final_z, params, repeats=repeats)
-    grad_c, grad_s = _timed(jax.grad(final_z), params, repeats=repeats)
-    rev_c, rev_s = _timed(jax.grad(lambda p: final_z(p, 0)), params, repeats=repeats)
+    fwd, fwd_c = _compiled(final_z, params)
+    grad, grad_c = _compiled(jax.grad(final_z), params)
+    rev, rev_c = _compiled(jax.grad(lambda p: final_z(p, 0)), params)
+    fwd_s, grad_s, rev_s = _best_interleaved((fwd, grad, rev), (params,), repeats)
     return dict(
         case=s.name,
         nodes=nodes,
