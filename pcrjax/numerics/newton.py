@@ -370,19 +370,25 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
     only when some member needs one; each member's iterates are those of its own solve.
     """
     x0 = stages.starts[0]
-    f_conv, f_consts = jax.closure_convert(fn, x0)
-    j_conv, j_consts = jax.closure_convert(jac_fn, x0)
     if homotopy is None:
+        f_conv, f_consts = jax.closure_convert(fn, x0)
+        j_conv, j_consts = jax.closure_convert(jac_fn, x0)
         g, g_consts = (lambda x, s, c: f_conv(x, *c)), f_consts
         g_jac, gj_consts = (lambda x, s, c: j_conv(x, *c)), j_consts
-    else:
-        h_conv, h_consts = jax.closure_convert(homotopy[0], x0, stages.s[0])
-        hj_conv, hj_consts = jax.closure_convert(homotopy[1], x0, stages.s[0])
-        g, g_consts = (lambda x, s, c: h_conv(x, s, *c)), h_consts
-        g_jac, gj_consts = (lambda x, s, c: hj_conv(x, s, *c)), hj_consts
+    else:  # fn is the homotopy at s = 1: its trace serves the tangent rule too (one trace less)
+        h_conv, g_consts = jax.closure_convert(homotopy[0], x0, stages.s[0])
+        hj_conv, gj_consts = jax.closure_convert(homotopy[1], x0, stages.s[0])
+        g, g_jac = (lambda x, s, c: h_conv(x, s, *c)), (lambda x, s, c: hj_conv(x, s, *c))
+        f_conv, f_consts = _at_one(h_conv), g_consts
+        j_conv, j_consts = _at_one(hj_conv), gj_consts
     fixed = jax.lax.stop_gradient
     x, jac, stats = _batched(g, g_jac, settings)(fixed(g_consts), fixed(gj_consts), fixed(jac0), fixed(stages))
     return _implicit(f_conv, j_conv, x, f_consts, j_consts), jac, stats
+
+
+def _at_one(h):
+    """``h(x, 1, *consts)`` as a function of ``(x, *consts)``."""
+    return lambda x, *c: h(x, jnp.ones((), x.dtype), *c)
 
 
 def _batched(g, g_jac, settings: NewtonSettings):
