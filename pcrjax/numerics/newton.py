@@ -364,8 +364,9 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
     is ``(h, h_jac)`` with ``h(x, 1) == fn(x)``, solved at each stage's ``s`` (without it every
     stage solves ``fn``); the tangent rule then evaluates ``h`` and ``h_jac`` at s = 1, and
     ``fn`` and ``jac_fn`` are not traced. The functions are traced once each
-    (`jax.closure_convert`); the Newton loop and the tangent rule evaluate those traces. The forward solve sees its inputs through
-    ``stop_gradient``: no tangent flows through its iterations.
+    (`jax.closure_convert`); the Newton loop and the tangent rule evaluate those traces. The
+    forward solve sees its inputs through ``stop_gradient``: no tangent flows through its
+    iterations.
 
     Under `jax.vmap` the solve runs as one batched loop (`_batched`) that evaluates Jacobians
     only when some member needs one; each member's iterates are those of its own solve.
