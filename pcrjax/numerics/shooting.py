@@ -71,6 +71,12 @@ class Layout(eqx.Module):
     def size(self) -> int:
         return 6 + (self.segments - 1) * self.segment_dim
 
+    @property
+    def segment_columns(self) -> list[slice]:
+        """Each segment's unknowns in the unknown vector: the base's 6, then each start's."""
+        d = self.segment_dim
+        return [slice(0, 6)] + [slice(6 + (k - 1) * d, 6 + k * d) for k in range(1, self.segments)]
+
     def colouring(self, extra_rows: int = 6):
         """Column colours and sparsity mask for the residual [junctions..., tip rows]."""
         d = self.segment_dim
@@ -79,9 +85,7 @@ class Layout(eqx.Module):
             colours += [(k % 2) * d + j for j in range(d)]
         rows = (self.segments - 1) * d + extra_rows
         mask = np.zeros((rows, self.size), dtype=bool)
-        col0 = [0] + [6 + (k - 1) * d for k in range(1, self.segments)] + [self.size]
-        for k in range(self.segments):
-            cols = slice(col0[k], col0[k + 1])
+        for k, cols in enumerate(self.segment_columns):
             if k > 0:
                 mask[(k - 1) * d : k * d, cols] = True  # junction k-1 sees segment k directly
             mask[k * d : (k + 1) * d if k < self.segments - 1 else rows, cols] = True
@@ -174,9 +178,7 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: 
         return y_last[:, :18], Y_last[..., :18]
     restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
     RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
-    d = layout.segment_dim
-    cols = [slice(0, 6)] + [slice(6 + (k - 1) * d, 6 + k * d) for k in range(1, layout.segments)]
-    directions = tuple(tuple(int(c) for c in np.flatnonzero(seeds[:, cl].any(axis=1))) for cl in cols)
+    directions = tuple(tuple(int(c) for c in np.flatnonzero(seeds[:, cl].any(axis=1))) for cl in layout.segment_columns)
     y_last, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT, directions)
 
     def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)

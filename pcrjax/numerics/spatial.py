@@ -36,6 +36,8 @@ cantilever at N 16-64 was 1.4 and 1.2, not yet its asymptotic 1).
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -247,14 +249,8 @@ _STEP = 2.0**-300
 def _legs(rods: Rods, idx) -> Rods:
     """The legs ``idx`` (an index array) of ``rods``."""
     take = lambda a: a[idx]  # noqa: E731
-    return Rods(
-        take(rods.history),
-        take(rods.stage_history),
-        jax.tree.map(take, rods.k),
-        take(rods.ds),
-        rods.effects,
-        rods.integrator,
-        rods.unroll,
+    return dataclasses.replace(
+        rods, history=take(rods.history), stage_history=take(rods.stage_history), k=jax.tree.map(take, rods.k), ds=take(rods.ds)
     )
 
 
