@@ -195,6 +195,7 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
                 ftol=FINAL_FTOL / pb.counted(None),
                 max_step=pb.max_step,
                 huber=pb.huber,
+                secant_jacobian=True,
             )
         except FitError as e:
             notes.append(f"the fit from the profiles' lower minimum {e}")
@@ -243,7 +244,10 @@ def fit(
     a minimum every cycle; over its first ``first_window`` seconds it has one. Each window (that
     length, doubling up to the whole recording) starts from the previous window's optimum. The
     whole recording is fitted twice: with the nominal noise scales, then with noise levels
-    estimated from the first pass's residuals (feasible generalised least squares). Progress is
+    estimated from the first pass's residuals (feasible generalised least squares). Over the whole
+    recording, where a Jacobian (the rollout's tangents) costs about nine residuals, an accepted
+    step updates it by Broyden's secant and the exact one is taken to test convergence
+    (``secant_jacobian``); on the shorter windows it cost more steps than it saved. Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
     Then the model error of the answer is measured on finer models (`discretisation.report`:
@@ -346,6 +350,7 @@ def fit(
                 progress=None if progress is None else (lambda i, c, st, label=label: progress(label, i, c, st)),
                 initial=initial,
                 huber=pb.huber,
+                secant_jacobian=t_end is None,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))

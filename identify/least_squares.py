@@ -41,6 +41,7 @@ def levenberg_marquardt(
     initial=None,
     lam0: float = 1e-3,
     huber: float = math.inf,
+    secant_jacobian: bool = False,
 ):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
@@ -74,7 +75,14 @@ def levenberg_marquardt(
     typical units), a trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
     state that ``save`` was given) resumes an interrupted run; ``save(state)`` is called after
     every accepted step; ``initial``, ``rj(theta0)`` if already known. Returns (theta, J, r,
-    iterations, converged, history). ``lam0``: the first damping (small: the first step Gauss-Newton's)."""
+    iterations, converged, history). ``lam0``: the first damping (small: the first step Gauss-Newton's).
+
+    ``secant_jacobian``: for a Jacobian that costs many residuals (a rollout's tangents), an
+    accepted step updates ``J`` by Broyden's rank-one secant from the trial's residuals instead
+    of calling ``rj``. The exact Jacobian is taken where the secant one is not to be trusted:
+    when a trial step fails (then the same damping is tried again), before convergence is
+    declared (the test is made again with it) and at the end, so the returned ``J`` is always
+    ``rj``'s. The secant estimate ``S`` is updated between exact Jacobians only."""
     theta = np.asarray(theta0, float)
     lam, history, it0, S = lam0, [], 0, np.zeros((theta.size, theta.size))
     if start is not None:
@@ -88,29 +96,53 @@ def levenberg_marquardt(
         )
     if not history:
         history.append(cost)
+    exact, anchor = True, (theta, r, J)  # J is rj's at theta; the last point where it was
+
+    def take_exact():
+        """rj at theta, and the secant estimate updated over the steps since the last exact Jacobian."""
+        nonlocal r, J, S, exact, anchor, cost
+        r_new, J_new = (np.asarray(a) for a in rj(jnp.asarray(theta)))
+        if not (np.all(np.isfinite(r_new)) and np.all(np.isfinite(J_new))):
+            raise FitError("the Jacobian at an accepted step is not finite (its tangent solves did not converge)")
+        th0, r0, J0 = anchor
+        if np.any(theta != th0):
+            S = _secant_update(S, theta - th0, J_new.T @ r_new - J0.T @ r0, (J_new - _rescaled(J0, r0, r_new, huber)).T @ r_new)
+        r, J, exact, anchor = r_new, J_new, True, (theta, r_new, J_new)
+        cost = 0.5 * float(r @ r)
+
+    def hessian_model():
+        A = _gauss_newton(J, r, huber)
+        return J.T @ r, A + S, np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
+
+    small = False  # the last step moved theta by less than xtol
     converged = decrement(J, r, huber) < ftol * cost
     it = it0
     for it in range(it0 + 1, max_iter + 1):
+        if converged and not exact:  # a secant Jacobian's test is made again with the exact one
+            take_exact()
+            converged = decrement(J, r, huber) < ftol * cost or small
         if converged:
             it -= 1
             break
-        g = J.T @ r
-        A = _gauss_newton(J, r, huber)
-        model = A + S
+        g, model, scale = hessian_model()
         accepted = False
-        scale = np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
         for _ in range(12):
             step = _damped_step(model, scale, g, lam)
             # raise the damping until the step fits the region (and the model is definite)
             while (step is None or np.any(np.abs(step) > max_step)) and lam < 1e30:
                 lam *= 4.0
                 step = _damped_step(model, scale, g, lam)
+            if step is not None:
+                r_t = np.asarray(rf(jnp.asarray(theta + step)))
+                cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
+                if cost_t < cost:
+                    accepted = True
+                    break
+            if not exact:  # the secant Jacobian may be what failed: the exact one, same damping
+                take_exact()
+                g, model, scale = hessian_model()
+                continue
             if step is None:  # no damping makes the model definite (a non-finite Jacobian): no step to try
-                break
-            r_t = np.asarray(rf(jnp.asarray(theta + step)))
-            cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
-            if cost_t < cost:
-                accepted = True
                 break
             lam *= 10.0
         if not accepted:
@@ -119,19 +151,28 @@ def levenberg_marquardt(
             break
         theta = theta + step
         lam = max(lam / 10.0, 1e-12)
-        r_new, J_new = (np.asarray(a) for a in rj(jnp.asarray(theta)))
-        if not (np.all(np.isfinite(r_new)) and np.all(np.isfinite(J_new))):
-            raise FitError("the Jacobian at an accepted step is not finite (its tangent solves did not converge)")
-        S = _secant_update(S, step, J_new.T @ r_new - g, (J_new - _rescaled(J, r, r_new, huber)).T @ r_new)
-        r, J = r_new, J_new
-        cost = 0.5 * float(r @ r)
+        if secant_jacobian:
+            J = _broyden(J, step, r_t - r)
+            r, cost, exact = r_t, cost_t, False
+        else:
+            take_exact()
         history.append(cost)
         if save is not None:
             save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist()))
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
-        converged = decrement(J, r, huber) < ftol * cost or np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
+        small = np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
+        converged = decrement(J, r, huber) < ftol * cost or small
+    if not exact:  # out of iterations on a secant Jacobian: the exact one, and its test
+        take_exact()
+        converged = decrement(J, r, huber) < ftol * cost or small
     return theta, J, r, it, converged, history
+
+
+def _broyden(J, step, change):
+    """Broyden's rank-one update of the Jacobian ``J`` after a ``step`` that changed the residuals
+    by ``change``: ``J + (change - J step) step^T / step^T step``."""
+    return J + np.outer(change - J @ step, step) / float(step @ step)
 
 
 def decrement(J, r, huber: float = math.inf) -> float:

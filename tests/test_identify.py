@@ -354,6 +354,53 @@ def test_levenberg_marquardt_converges_where_the_residuals_do_not_vanish():
     assert converged0 and it0 == 0 and np.all(x0 == 0.0)
 
 
+def _exponential_decay_problem():
+    """``a exp(-b t) + c`` sampled at 50 times against data made with (2, 1.3, 0.5): a
+    zero-residual problem whose closed-form optimum is those values."""
+    t = np.linspace(0.0, 2.0, 50)
+    y = 2.0 * np.exp(-1.3 * t) + 0.5
+
+    def rf(p):
+        return p[0] * np.exp(-p[1] * t) + p[2] - y
+
+    def rj(p):
+        e = np.exp(-p[1] * t)
+        return rf(p), np.stack([e, -p[0] * t * e, np.ones_like(t)], axis=1)
+
+    return rf, rj, np.array([2.0, 1.3, 0.5])
+
+
+@pytest.mark.parametrize("case", ["large residual", "exponential decay"])
+def test_levenberg_marquardt_with_secant_jacobians_reaches_the_optimum_with_the_exact_jacobian(case):
+    """Broyden's secant Jacobian between exact ones (``secant_jacobian``, for a rollout's
+    Jacobian that costs many residuals) reaches the closed-form optimum, declares convergence
+    only on the exact Jacobian's test, and returns that Jacobian; on the zero-residual problem
+    it takes fewer exact Jacobians than a step each."""
+    if case == "large residual":
+        rf, rj = _large_residual_problem()
+        start, optimum = np.array([0.3, -0.2]), np.zeros(2)
+    else:
+        rf, rj, optimum = _exponential_decay_problem()
+        start = np.array([1.0, 0.5, 0.0])
+    runs = {}
+    for secant in (False, True):
+        calls = {"rj": 0}
+
+        def counted(x, calls=calls):
+            calls["rj"] += 1
+            return rj(x)
+
+        x, J, r, it, converged, _ = levenberg_marquardt(
+            rf, counted, start, 60, ftol=1e-16, max_step=np.inf, secant_jacobian=secant
+        )
+        assert converged, (case, secant, it)
+        assert np.max(np.abs(x - optimum)) < 1e-6, (case, secant, x)
+        np.testing.assert_array_equal(J, rj(x)[1])  # the exact Jacobian at the answer
+        runs[secant] = calls["rj"], it
+    if case == "exponential decay":
+        assert runs[True][0] < runs[False][0] / 2, runs
+
+
 def _check_recovery(res, truth, names):
     """Every truth within 3 reported uncertainties: statistical and discretisation combined."""
     v = res.values
