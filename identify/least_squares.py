@@ -115,12 +115,17 @@ def levenberg_marquardt(
         return J.T @ r, A + S, np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
 
     small = False  # the last step moved theta by less than xtol
-    converged = decrement(J, r, huber) < ftol * cost
+
+    def passes():
+        """The convergence test at theta: the decrement within ftol of the cost, or a step below xtol."""
+        return decrement(J, r, huber) < ftol * cost or small
+
+    converged = passes()
     it = it0
     for it in range(it0 + 1, max_iter + 1):
         if converged and not exact:  # a secant Jacobian's test is made again with the exact one
             take_exact()
-            converged = decrement(J, r, huber) < ftol * cost or small
+            converged = passes()
         if converged:
             it -= 1
             break
@@ -162,10 +167,10 @@ def levenberg_marquardt(
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
         small = np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
-        converged = decrement(J, r, huber) < ftol * cost or small
+        converged = passes()
     if not exact:  # out of iterations on a secant Jacobian: the exact one, and its test
         take_exact()
-        converged = decrement(J, r, huber) < ftol * cost or small
+        converged = passes()
     return theta, J, r, it, converged, history
 
 
