@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -316,6 +317,22 @@ def _compiled_advance(scene, state, chunk: int, path=None):
     return _COMPILED[key]
 
 
+def _start_and_chunk(scene, path, chunk: int):
+    """The initial state (`_start`) and the chunk of steps compiled (`_compiled_advance`, so that
+    run time excludes compilation). A chunk not compiled yet in this process compiles in a second
+    thread while the initial state's program compiles and runs: XLA compiles without holding
+    Python's lock, so on two cores the two compiles overlap."""
+    like = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(_start, scene, path)[1])
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        job = pool.submit(_compiled_advance, scene, like, chunk, path)
+        static, state = _start(scene, path)
+        jax.block_until_ready(state)
+        compiled = job.result()
+    if _signature(state) != _signature(like):  # a leaf's weak type differs: compile for the state itself
+        compiled = _compiled_advance(scene, state, chunk, path)
+    return static, state, compiled
+
+
 @eqx.filter_jit
 def _finish(scene, static, state0, outs, steps: int):
     return _assemble(scene, static, state0, outs, steps)
@@ -386,16 +403,13 @@ def _run(scene, path, throw, progress, chunk, timings) -> Trajectory:
     chunk = max(1, min(chunk, steps))
     n_chunks = -(-steps // chunk)
     t_c0 = time.perf_counter()
-    static, state = _start(scene, path)
+    static, state, compiled = _start_and_chunk(scene, path, chunk)
     state0 = state
-    jax.block_until_ready(state)
     if int(static.stats.result) != results.SUCCESSFUL:
         code, res = int(static.stats.result), float(static.stats.residual)
         raise ConvergenceError(
             f"initial static equilibrium did not converge: {results.message(code)} (scaled residual {res:.3e})", 0.0, res, code
         )
-    # Compile the chunk once (lower+compile), so run time excludes compilation.
-    compiled = _compiled_advance(scene, state, chunk, path)
     compile_s = time.perf_counter() - t_c0
     bar = None
     if progress is True:

@@ -125,3 +125,39 @@ def test_a_continuation_that_loses_its_path_is_retried_in_shorter_steps():
     assert int(stats.result) == 0 and abs(float(x) - 3.0) < 1e-13
     assert int(stats.iterations) > int(lost.iterations)  # the first plan ran, then the retry
     np.testing.assert_allclose(jax.grad(lambda q: root(q, 8)[0])(q), 1.0 / np.cosh(3.0), rtol=1e-10)
+
+
+def _root_with_aux(params, start, homotopy=False):
+    """The cubic's root from ``start`` (restarted from 0.5 if that fails, or by a load continuation
+    with ``homotopy``), with aux = exp(p x) from the residual's evaluations, given the derivatives
+    of exp(p x) by `newton.recorded`."""
+    p, q = params[0], params[1]
+    with_aux = lambda x, s=1.0: (x**3 + p * x - s * q, jnp.exp(p * x))  # noqa: E731
+    fn = lambda x: with_aux(x)[0]  # noqa: E731
+    stages, h = newton.with_restart(jnp.full(1, start), jnp.full(1, 0.5)), None
+    if homotopy:
+        stages = newton.with_continuation(jnp.full(1, start), 4)
+        h = (with_aux, jax.jacfwd(lambda x, s: with_aux(x, s)[0]))
+    x, _, stats, aux = newton.solve(with_aux, jax.jacfwd(fn), newton.Jacobian.empty(1), SETTINGS, stages, h, has_aux=True)
+    return x[0], newton.recorded(lambda z: jnp.exp(p * z), x, aux)[0], stats
+
+
+@pytest.mark.parametrize("homotopy", [False, True])
+def test_aux_of_the_root_is_its_functions_value_with_its_derivatives(homotopy):
+    """``has_aux``: the aux returned is the one evaluated at the returned root, also after a
+    restart or a continuation from a NaN start (whose aux is NaN), single and under vmap; with
+    `newton.recorded` its derivatives are those of exp(p x(p, q)):
+    (exp(p x) (x + p dx/dp), exp(p x) p dx/dq)."""
+    params = jnp.array([[2.0, 3.0], [1.0, 1.0], [0.5, 7.0]])
+    starts = jnp.array([4.0, jnp.nan, 10.0])
+    run = lambda prm, x0: _root_with_aux(prm, x0, homotopy)[1]  # noqa: E731
+    batched = jax.jit(jax.vmap(run))(params, starts)
+    grads = jax.jit(jax.vmap(jax.grad(run)))(params, starts)
+    for i in range(len(starts)):
+        p = float(params[i, 0])
+        x, dq, dp, _ = _closed_form(p, float(params[i, 1]))
+        value = np.exp(p * x)
+        np.testing.assert_allclose(jax.jit(run)(params[i], starts[i]), value, rtol=1e-13)
+        np.testing.assert_allclose(batched[i], value, rtol=1e-13)
+        np.testing.assert_allclose(jax.grad(run)(params[i], starts[i]), [value * (x + p * dp), value * p * dq], rtol=1e-10)
+        np.testing.assert_allclose(grads[i], [value * (x + p * dp), value * p * dq], rtol=1e-10)

@@ -177,16 +177,17 @@ class _State(eqx.Module):
     gave_up: jnp.ndarray  # the last direction's line search failed
     trial_finite: jnp.ndarray  # the last trial residual was finite
     finished: jnp.ndarray
+    aux: tuple  # what fn returned beside the residual at x (`solve`'s ``has_aux``), else ()
 
 
-def _initial_state(jac0: Jacobian, stages: Stages) -> _State:
+def _initial_state(jac0: Jacobian, stages: Stages, aux) -> _State:
     x0 = stages.starts[0]
     n = x0.shape[0]
     false, zero = jnp.asarray(False), jnp.asarray(0)
     return _State(
         k=zero, x=x0, r=jnp.zeros(n, x0.dtype), nrm=jnp.asarray(jnp.inf, x0.dtype), jac=jac0, need=stages.fresh[0], fresh=false,
         dx=jnp.zeros(n, x0.dtype), lam=jnp.asarray(0.0, x0.dtype), it=zero, total_it=zero, nj=zero, evals=zero, started=false,
-        gave_up=false, trial_finite=jnp.asarray(True), finished=false,
+        gave_up=false, trial_finite=jnp.asarray(True), finished=false, aux=aux,
     )  # fmt: skip
 
 
@@ -204,9 +205,9 @@ def _trial(st: _State):
     return dx, st.x + st.lam * dx
 
 
-def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
-    """Armijo's test of the trial residual ``r_t``, the next state (its Jacobian not yet
-    Broyden-updated), the updated matrix and whether to factor it."""
+def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t, aux_t):
+    """Armijo's test of the trial residual ``r_t`` (and what came with it, ``aux_t``), the next
+    state (its Jacobian not yet Broyden-updated), the updated matrix and whether to factor it."""
     x, r, nrm, lam, started = st.x, st.r, st.nrm, st.lam, st.started
     K = stages.s.shape[0]
     lam_min = 0.5**settings.max_backtracks
@@ -255,6 +256,7 @@ def _accept(st: _State, stages: Stages, settings: NewtonSettings, dx, r_t):
         gave_up=jnp.where(advance, False, jnp.where(searched, give_up, st.gave_up)),
         trial_finite=finite,
         finished=finished,
+        aux=jax.tree.map(lambda a, b: jnp.where(move, a, b), aux_t, st.aux),
     )
     return nxt, (step_x, r_t - r), upd
 
@@ -276,8 +278,10 @@ def _where(p, new, old):
     return jax.tree.map(lambda a, b: jnp.where(p.reshape(p.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
-def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, batched: bool = False):
-    """Solve ``fn(x, s) = 0`` stage after stage (`Stages`); returns ``(x, Jacobian, Stats)``. Never raises.
+def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, batched: bool = False, has_aux=False):
+    """Solve ``fn(x, s) = 0`` stage after stage (`Stages`); returns ``(x, Jacobian, Stats, aux)``
+    (with ``has_aux``, ``fn`` returns ``(residual, aux)`` and aux is that of the returned x;
+    else aux is ()). Never raises.
 
     One `while_loop` whose every pass evaluates ``fn`` once (so the residual is traced once):
     a pass either takes a new Newton direction (full step first) or halves the step of the
@@ -296,6 +300,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     one. The loop runs until every member has finished; a finished member's state is held.
     """
     per = jax.vmap if batched else (lambda f: f)
+    evaluate = fn if has_aux else (lambda x, s: (fn(x, s), ()))
 
     def maybe(p, make, old):
         if not batched:
@@ -327,15 +332,19 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
         jac = fresh_jacobians(refresh, st.x, s, st.jac)
         st = eqx.tree_at(lambda t: (t.jac, t.fresh, t.nj), st, (jac, st.fresh | refresh, st.nj + jnp.where(refresh, 1, 0)))
         dx, x_t = per(_trial)(st)
-        r_t = fn(x_t, s)
-        nxt, (step_x, change), upd = per(lambda a, b, c, d: _accept(a, b, settings, c, d))(st, stages, dx, r_t)
+        r_t, aux_t = evaluate(x_t, s)
+        nxt, (step_x, change), upd = per(lambda *a: _accept(a[0], a[1], settings, *a[2:]))(st, stages, dx, r_t, aux_t)
         if batched:
             upd = upd & ~st.finished
         updated = lambda: per(lambda j, a, b: j.broyden(a, b))(st.jac, step_x, change)  # noqa: E731
         nxt = eqx.tree_at(lambda t: t.jac, nxt, maybe(upd, updated, nxt.jac))
         return _where(st.finished, st, nxt) if batched else nxt
 
-    init = per(_initial_state)(jac0, stages)
+    aux0 = ()
+    if has_aux:  # zeros of aux's shape until the first pass evaluates fn
+        x0, s0 = (stages.starts[:, 0], stages.s[:, 0]) if batched else (stages.starts[0], stages.s[0])
+        aux0 = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(fn, x0, s0)[1])
+    init = per(_initial_state)(jac0, stages, aux0)
     more = (lambda st: ~jnp.all(st.finished)) if batched else (lambda st: ~st.finished)
     st = jax.lax.while_loop(more, body, init)
     result = jnp.where(
@@ -347,10 +356,15 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
             jnp.where(st.gave_up, results.LINE_SEARCH_FAILED, results.MAX_ITERATIONS),
         ),
     )
-    return st.x, st.jac, Stats(iterations=st.total_it, residual=st.nrm, jacobians=st.nj, evaluations=st.evals, result=result)
+    return (
+        st.x,
+        st.jac,
+        Stats(iterations=st.total_it, residual=st.nrm, jacobians=st.nj, evaluations=st.evals, result=result),
+        st.aux,
+    )
 
 
-def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, homotopy=None):
+def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, homotopy=None, has_aux=False):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
     ``jac_fn(x)`` gives the exact Jacobian of ``fn`` at ``x``; it serves the forward Newton and,
@@ -368,6 +382,11 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
     forward solve sees its inputs through ``stop_gradient``: no tangent flows through its
     iterations.
 
+    ``has_aux``: ``fn`` (and the homotopy's ``h``) return ``(residual, aux)``, and the solve
+    returns ``(x, Jacobian, Stats, aux)`` with the aux of the returned x: what a caller would
+    otherwise compute again at the root (the legs' nodes) comes from the last evaluation. It
+    carries no derivatives; `recorded` gives it those of the function that made it.
+
     Under `jax.vmap` the solve runs as one batched loop (`_batched`) that evaluates Jacobians
     only when some member needs one; each member's iterates are those of its own solve.
     """
@@ -384,8 +403,33 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
         f_conv, f_consts = _at_one(h_conv), g_consts
         j_conv, j_consts = _at_one(hj_conv), gj_consts
     fixed = jax.lax.stop_gradient
-    x, jac, stats = _batched(g, g_jac, settings)(fixed(g_consts), fixed(gj_consts), fixed(jac0), fixed(stages))
-    return _implicit(f_conv, j_conv, x, f_consts, j_consts), jac, stats
+    x, jac, stats, aux = _batched(g, g_jac, settings, has_aux)(fixed(g_consts), fixed(gj_consts), fixed(jac0), fixed(stages))
+    x = _implicit(_residual_of(f_conv) if has_aux else f_conv, j_conv, x, f_consts, j_consts)
+    return (x, jac, stats, aux) if has_aux else (x, jac, stats)
+
+
+def _residual_of(f):
+    return lambda x, *c: f(x, *c)[0]
+
+
+def recorded(fn, x, value):
+    """``value``, which is ``fn(x)`` computed elsewhere (`solve`'s aux at its root), with the
+    derivatives of ``fn`` at ``x``: a run without derivatives takes ``value`` and does not
+    evaluate ``fn``; a derivative evaluates ``fn``'s JVP at ``x``."""
+    conv, consts = jax.closure_convert(fn, x)
+    return _recorded(conv, x, value, consts)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _recorded(conv, x, value, consts):
+    return value
+
+
+@_recorded.defjvp
+def _recorded_jvp(conv, primals, tangents):
+    x, _, consts = primals
+    dx, _, dconsts = tangents
+    return jax.jvp(lambda z, c: conv(z, *c), (x, list(consts)), (dx, list(dconsts)))
 
 
 def _at_one(h):
@@ -393,7 +437,7 @@ def _at_one(h):
     return lambda x, *c: h(x, jnp.ones((), x.dtype), *c)
 
 
-def _batched(g, g_jac, settings: NewtonSettings):
+def _batched(g, g_jac, settings: NewtonSettings, has_aux=False):
     """`_staged_newton` of ``g(x, s, consts)`` as a function of its arrays, with a `vmap` rule.
 
     Batched by plain `vmap`, every `lax.cond` of the loop whose predicate differs between members
@@ -403,7 +447,9 @@ def _batched(g, g_jac, settings: NewtonSettings):
 
     @jax.custom_batching.custom_vmap
     def run(consts, jac_consts, jac0, stages):
-        return _staged_newton(lambda x, s: g(x, s, consts), lambda x, s: g_jac(x, s, jac_consts), jac0, settings, stages)
+        return _staged_newton(
+            lambda x, s: g(x, s, consts), lambda x, s: g_jac(x, s, jac_consts), jac0, settings, stages, has_aux=has_aux
+        )
 
     @run.def_vmap
     def rule(size, in_batched, consts, jac_consts, jac0, stages):
@@ -421,6 +467,7 @@ def _batched(g, g_jac, settings: NewtonSettings):
             settings,
             spread(stages, in_batched[3]),
             batched=True,
+            has_aux=has_aux,
         )
         return out, jax.tree.map(lambda _: True, out)
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 
 from ..physics.rod import coefficients, kinematic_state
 from . import bdf_alpha
-from .spatial import Rods, integrate, midpoints
+from .spatial import midpoints
 
 
 class RodHistory(eqx.Module):
@@ -68,25 +68,21 @@ def advance(co: bdf_alpha.Coefficients, hist: RodHistory, z_nodes, z_stages, z_p
     return RodHistory(h_nodes, g_st - co.c0 * z_stages)
 
 
-def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, ds, integrator):
-    """Legs that have rested forever in the static solution ``static_nodes`` (n, N+1, 18) (``rod``
-    leaves and ``ds`` per leg).
+def at_rest(co: bdf_alpha.Coefficients, rod, effects, gravity, static_nodes, static_stages):
+    """Legs that have rested forever in the static solution: ``static_nodes`` (n, N+1, 18) and
+    the states at the integrator's stage points, ``static_stages`` (n, N, stages, 18), as the
+    static solve's legs give them (``rod`` leaves per leg).
 
     Returns ``(nodes (n, N+1, 24), z (n, N+1, 12), history)``. At rest the dynamic equations
     reduce to the static ones, so the stage states are the static ones with zero velocities.
     Strains follow from the loads with any history satisfying $h = -c_0 z$; z is computed with the
     damping-free law (identical at rest), then the rest history.
     """
-    n, n_nodes = static_nodes.shape[0], static_nodes.shape[1]
-    static_eff = dataclasses.replace(effects, inertia=False)
-    k = jax.vmap(lambda r: coefficients(r, static_eff, jnp.zeros((), static_nodes.dtype), gravity))(rod)
-    zero = jax.vmap(lambda _: RodHistory.zeros(n_nodes - 1, integrator, dtype=static_nodes.dtype))(jnp.arange(n))
-    _, _, stages = integrate(static_nodes[:, 0], Rods(zero.nodes, zero.stages, k, ds, static_eff, integrator), return_stages=True)
 
     def with_velocities(a):
         return jnp.concatenate([a, jnp.zeros(a.shape[:-1] + (6,), a.dtype)], axis=-1)
 
-    nodes, stages = with_velocities(static_nodes), with_velocities(stages)
+    nodes, stages = with_velocities(static_nodes), with_velocities(static_stages)
     k_rest = jax.vmap(lambda r: coefficients(r, dataclasses.replace(effects, damping=False), co.c0, gravity))(rod)
 
     def z_of(kk, ys):  # one leg's points (..., 24)

@@ -116,12 +116,16 @@ class Problem:
     def split(self, x):
         return x[: self.P], x[self.P :].reshape(self.n, self.S)
 
-    def residual(self, x):
+    def residual(self, x, record=False):
+        """The residual; with ``record``, ``(residual, legs)``: `legs` with every node and stage,
+        at no extra cost (a solve's root then needs no second pass along the legs)."""
         xp, xl = self.split(x)
-        junc, tips, _ = self.legs(xl, all_nodes=False)
+        legs = self.legs(xl, return_stages=record, all_nodes=record)
+        junc, tips = legs[0], legs[1]
         A = self.algebraic(xp, tips)
         cons = A[self.P :].reshape(self.n, 6)
-        return jnp.concatenate([A[: self.P], jnp.concatenate([junc, cons], axis=1).reshape(-1)])
+        r = jnp.concatenate([A[: self.P], jnp.concatenate([junc, cons], axis=1).reshape(-1)])
+        return (r, legs) if record else r
 
     def jacobian(self, x):
         xp, xl = self.split(x)

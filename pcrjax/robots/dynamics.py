@@ -64,8 +64,7 @@ def initial_step_state(scene, static: StaticSolution, inverse_dynamics: bool = F
     s = scene.solver
     co = bdf_alpha.starting(s.dt)  # the first step's scheme: the rest history is -c0 z
     a = static.actuators
-    ds = scene.legs.lengths(a) / s.grid_nodes
-    nodes, z, history = rod_history.at_rest(co, scene.legs.rod, scene.effects, scene.gravity, static.nodes, ds, s.integrator)
+    nodes, z, history = rod_history.at_rest(co, scene.legs.rod, scene.effects, scene.gravity, static.nodes, static.stages)
     memory = scene.end.rest_memory(static.position, static.rotation, co)
     lay = assembly.layout(scene, True)
     sc = assembly.scales(scene, True)
@@ -157,9 +156,11 @@ def step(scene, state: StepState, t, path=None):
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
     start = newton.with_restart(guess, x1, ~state.has_jac)
-    x, jac, stats = newton.solve(form.prob.residual, form.prob.jacobian, state.jac, s.newton, start)
+    x, jac, stats, legs_at_root = newton.solve(
+        lambda z: form.prob.residual(z, True), form.prob.jacobian, state.jac, s.newton, start, has_aux=True
+    )
     prob, body, xl, a = form.solution(x)
-    _, tips, nodes, stages = prob.legs(xl, return_stages=True)
+    _, tips, nodes, stages = newton.recorded(lambda z: prob.legs(z, return_stages=True), xl, legs_at_root)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co_next, h, k, scene.effects, nd, st, zp, co)  # noqa: E731
     z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
     memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co_next)

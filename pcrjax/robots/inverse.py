@@ -79,9 +79,10 @@ class InverseProblem:
     def join(self, xa, xl):
         return join(xa, xl)
 
-    def residual(self, x):
+    def residual(self, x, record=False):
+        """As `assembly.Problem.residual`, of the problem at the actuator unknowns in ``x``."""
         xa, xl = self.split(x)
-        return self.problem(xa).residual(jnp.concatenate([self.xp, xl.reshape(-1)]))
+        return self.problem(xa).residual(jnp.concatenate([self.xp, xl.reshape(-1)]), record)
 
     def jacobian(self, x):
         xa, xl = self.split(x)
@@ -127,14 +128,15 @@ def solve_static_inverse(scene, p, R, stages: int | None = None, t=0.0) -> Stati
     _, xl0 = prob1.problem(jnp.zeros(n)).split(fwd.unknowns)
     x0 = jax.lax.stop_gradient(prob1.join(jnp.zeros(n), xl0))
     k = max(1, s.continuation if stages is None else stages)
-    homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
-    x, _, stats = newton.solve(
-        prob1.residual,
+    homotopy = (lambda x, lam: problem(lam).residual(x, True), lambda x, lam: problem(lam).jacobian(x))
+    x, _, stats, legs_at_root = newton.solve(
+        lambda x: prob1.residual(x, True),
         prob1.jacobian,
         newton.Jacobian.empty(prob1.size),
         s.newton,
         newton.continuation_first(x0, k, retry=STATIC_RETRY * k),
         homotopy,
+        has_aux=True,
     )
     stats = newton.Stats(
         iterations=stats.iterations + fwd.stats.iterations,
@@ -144,5 +146,8 @@ def solve_static_inverse(scene, p, R, stages: int | None = None, t=0.0) -> Stati
         result=results.worst(fwd.stats.result, stats.result),
     )
     xa, xl = prob1.split(x)
-    _, _, nodes = prob1.problem(xa).legs(xl)
-    return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=prob1.actuators(xa))
+    leg_problem = prob1.problem(xa)
+    _, _, nodes, stages = newton.recorded(lambda z: leg_problem.legs(z, return_stages=True), xl, legs_at_root)
+    return StaticSolution(
+        position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=prob1.actuators(xa), stages=stages
+    )

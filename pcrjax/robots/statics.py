@@ -28,6 +28,7 @@ class StaticSolution(eqx.Module):
     unknowns: jnp.ndarray
     stats: newton.Stats
     actuators: jnp.ndarray  # (n_act,) actuator values
+    stages: jnp.ndarray  # (n, N, stages, 18) the legs' states at their integrator's stage points
 
 
 def solve_static(scene, t=0.0, near=None) -> StaticSolution:
@@ -54,7 +55,7 @@ def solve_static(scene, t=0.0, near=None) -> StaticSolution:
     rod_weight = prob1.k.gravity if prob1.k.gravity is not None else jnp.zeros((n, 3))
     guess = end.static_guess(legs, a, F, M, rod_weight, prob1.sc)
     x0 = jax.lax.stop_gradient(jnp.zeros(prob1.size) if guess is None else guess)
-    homotopy = (lambda x, lam: problem(lam).residual(x), lambda x, lam: problem(lam).jacobian(x))
+    homotopy = (lambda x, lam: problem(lam).residual(x, True), lambda x, lam: problem(lam).jacobian(x))
     if near is not None:
         stages = newton.with_continuation(jax.lax.stop_gradient(jnp.asarray(near, x0.dtype)), max(pre, fallback_stages, 1))
     elif pre:
@@ -63,8 +64,16 @@ def solve_static(scene, t=0.0, near=None) -> StaticSolution:
         stages = newton.with_continuation(x0, fallback_stages)
     else:
         stages, homotopy = newton.plain(x0), None
-    x, _, stats = newton.solve(prob1.residual, prob1.jacobian, newton.Jacobian.empty(prob1.size), s.newton, stages, homotopy)
+    x, _, stats, legs_at_root = newton.solve(
+        lambda x: prob1.residual(x, True),
+        prob1.jacobian,
+        newton.Jacobian.empty(prob1.size),
+        s.newton,
+        stages,
+        homotopy,
+        has_aux=True,
+    )
     xp, xl = prob1.split(x)
-    _, tips, nodes = prob1.legs(xl)
+    _, tips, nodes, leg_stages = newton.recorded(lambda z: prob1.legs(z, return_stages=True), xl, legs_at_root)
     p, R = end.output_pose(prob1.pose(xp), tips)
-    return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=a)
+    return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=a, stages=leg_stages)
