@@ -85,6 +85,7 @@ def _scan(F, state0, rods, segment_starts, restarts, return_stages, collect=True
     ds, integrator = rods.ds, rods.integrator
     n_steps = rods.history.shape[1] - 1
     tmap = jax.tree.map
+    F = jax.jit(F)  # traced once for the four RK4 stages (the same shapes), not four times
 
     def axpy(a, x, y):  # y + a x per leg, leaf by leaf
         return tmap(lambda xx, yy: yy + a.reshape(a.shape + (1,) * (xx.ndim - 1)) * xx, x, y)
