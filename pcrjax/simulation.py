@@ -302,17 +302,19 @@ def _signature(tree):
     return treedef, sig
 
 
-def _compiled_advance(scene, state, chunk: int, path=None):
+def _compiled_advance(scene, state, chunk: int, path=None, make_room=True):
     """``_advance`` lowered and compiled once per process for each abstract signature (calls to
     ``simulate`` that differ only in numbers, e.g. alpha or dt, reuse it; ``lower().compile()``
-    alone would compile again every time)."""
+    alone would compile again every time). ``make_room``: first release compiled code if the
+    process's memory maps run short (`executables.make_room`; never from a second thread)."""
     try:
         key = (_signature((scene, state, path)), chunk)
         hash(key)
     except TypeError:  # an unhashable static leaf: compile without caching
         return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     if key not in _COMPILED:
-        executables.make_room()
+        if make_room:
+            executables.make_room()
         _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     return _COMPILED[key]
 
@@ -323,8 +325,9 @@ def _start_and_chunk(scene, path, chunk: int):
     thread while the initial state's program compiles and runs: XLA compiles without holding
     Python's lock, so on two cores the two compiles overlap."""
     like = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(_start, scene, path)[1])
+    executables.make_room()  # here: releasing compiled code while another thread compiles is not safe
     with ThreadPoolExecutor(max_workers=1) as pool:
-        job = pool.submit(_compiled_advance, scene, like, chunk, path)
+        job = pool.submit(_compiled_advance, scene, like, chunk, path, False)
         static, state = _start(scene, path)
         jax.block_until_ready(state)
         compiled = job.result()
