@@ -302,19 +302,24 @@ def _signature(tree):
     return treedef, sig
 
 
-def _compiled_advance(scene, state, chunk: int, path=None, make_room=True):
-    """``_advance`` lowered and compiled once per process for each abstract signature (calls to
-    ``simulate`` that differ only in numbers, e.g. alpha or dt, reuse it; ``lower().compile()``
-    alone would compile again every time). ``make_room``: first release compiled code if the
-    process's memory maps run short (`executables.make_room`; never from a second thread)."""
+def _advance_key(scene, state, chunk: int, path):
+    """The key of `_COMPILED` for these arguments, or None if a static leaf is unhashable."""
     try:
         key = (_signature((scene, state, path)), chunk)
         hash(key)
-    except TypeError:  # an unhashable static leaf: compile without caching
+    except TypeError:
+        return None
+    return key
+
+
+def _compiled_advance(scene, state, chunk: int, path=None):
+    """``_advance`` lowered and compiled once per process for each abstract signature (calls to
+    ``simulate`` that differ only in numbers, e.g. alpha or dt, reuse it; ``lower().compile()``
+    alone would compile again every time); without caching where a static leaf is unhashable."""
+    key = _advance_key(scene, state, chunk, path)
+    if key is None:
         return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     if key not in _COMPILED:
-        if make_room:
-            executables.make_room()
         _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     return _COMPILED[key]
 
@@ -323,14 +328,22 @@ def _start_and_chunk(scene, path, chunk: int):
     """The initial state (`_start`) and the chunk of steps compiled (`_compiled_advance`, so that
     run time excludes compilation). A chunk not compiled yet in this process compiles in a second
     thread while the initial state's program compiles and runs: XLA compiles without holding
-    Python's lock, so on two cores the two compiles overlap."""
+    Python's lock, so on two cores the two compiles overlap. Before a new chunk compiles,
+    `executables.make_room` (here, on this thread: releasing compiled code while another thread
+    compiles is not safe)."""
     like = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(_start, scene, path)[1])
-    executables.make_room()  # here: releasing compiled code while another thread compiles is not safe
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        job = pool.submit(_compiled_advance, scene, like, chunk, path, False)
+    key = _advance_key(scene, like, chunk, path)
+    if key is not None and key in _COMPILED:
         static, state = _start(scene, path)
-        jax.block_until_ready(state)
-        compiled = job.result()
+        compiled = _COMPILED[key]
+    else:
+        if key is not None:
+            executables.make_room()
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            job = pool.submit(_compiled_advance, scene, like, chunk, path)
+            static, state = _start(scene, path)
+            jax.block_until_ready(state)
+            compiled = job.result()
     if _signature(state) != _signature(like):  # a leaf's weak type differs: compile for the state itself
         compiled = _compiled_advance(scene, state, chunk, path)
     return static, state, compiled

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import bdf_alpha
+from ..numerics import bdf_alpha, newton
 from ..numerics.rod_history import RodHistory
 from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, shoot_jacobian, unknowns_from_nodes
 from ..numerics.spatial import Rods
@@ -91,6 +91,12 @@ class Problem:
         (nodes (n, 1, dim), the tips, unless ``all_nodes``)."""
         out = shoot(self.layout, xl, self.y0, self.leg_R_ref, self.rods, self.sc, return_stages, all_nodes)
         return (out[1], out[0][:, -1, :TIP], out[0]) + out[2:]
+
+    def recorded_legs(self, xl, value):
+        """`legs` at ``xl`` with the stages, from ``value``: what `residual` with ``record`` gave at
+        the same unknowns (a Newton solve's aux at its root). A forward run integrates nothing;
+        derivatives are those of `legs` (`newton.recorded`)."""
+        return newton.recorded(lambda z: self.legs(z, return_stages=True), xl, value)
 
     def leg_jacobians(self, xl):
         """(tips (n, 18), (n, S-6+18, S)): the legs' tip states and each leg's Jacobian of

@@ -160,7 +160,7 @@ def step(scene, state: StepState, t, path=None):
         lambda z: form.prob.residual(z, True), form.prob.jacobian, state.jac, s.newton, start, has_aux=True
     )
     prob, body, xl, a = form.solution(x)
-    _, tips, nodes, stages = newton.recorded(lambda z: prob.legs(z, return_stages=True), xl, legs_at_root)
+    _, tips, nodes, stages = prob.recorded_legs(xl, legs_at_root)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co_next, h, k, scene.effects, nd, st, zp, co)  # noqa: E731
     z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
     memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co_next)

@@ -146,8 +146,7 @@ def solve_static_inverse(scene, p, R, stages: int | None = None, t=0.0) -> Stati
         result=results.worst(fwd.stats.result, stats.result),
     )
     xa, xl = prob1.split(x)
-    leg_problem = prob1.problem(xa)
-    _, _, nodes, stages = newton.recorded(lambda z: leg_problem.legs(z, return_stages=True), xl, legs_at_root)
+    _, _, nodes, stages = prob1.problem(xa).recorded_legs(xl, legs_at_root)
     return StaticSolution(
         position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=prob1.actuators(xa), stages=stages
     )

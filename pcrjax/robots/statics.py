@@ -74,6 +74,6 @@ def solve_static(scene, t=0.0, near=None) -> StaticSolution:
         has_aux=True,
     )
     xp, xl = prob1.split(x)
-    _, tips, nodes, leg_stages = newton.recorded(lambda z: prob1.legs(z, return_stages=True), xl, legs_at_root)
+    _, tips, nodes, leg_stages = prob1.recorded_legs(xl, legs_at_root)
     p, R = end.output_pose(prob1.pose(xp), tips)
     return StaticSolution(position=p, rotation=R, nodes=nodes, unknowns=x, stats=stats, actuators=a, stages=leg_stages)
