@@ -9,9 +9,8 @@ and the camera. From nominal lengths a time-domain fit falls into a wrong minimu
 Triskele-bot 2 % of rod length moves the modes from 86-155 Hz to 19-84 Hz.
 
 **Noise.** Noise levels are unknown for a real log, so they are estimated from the residuals at
-the last window's optimum (over the frames that a decoding error did not throw off,
-`robust.spikes`) and the whole recording is fitted with them (feasible generalised least
-squares) under a Huber loss
+the optimum (over the frames that a decoding error did not throw off, `robust.spikes`) and the
+fit is repeated once with them (feasible generalised least squares) under a Huber loss
 (`robust`) that weighs such frames down; they are reported. The covariance of the unknowns is
 then ``(J^T J)^{-1}`` of the Gauss-Newton Hessian at the optimum (rescaled by the final reduced
 chi-square), propagated through the log transforms to standard errors of the values themselves
@@ -112,12 +111,11 @@ def modal_start(
 # that window's SE of its optimum. A window's optimum is only the next window's start, which
 # moves further than that: a tighter stop there costs an iteration per window and gains nothing.
 FINAL_FTOL = 2e-3
-# The noise levels that weight the whole recording's pass come from the residuals of the last
-# window's optimum. A recording too short for a window is first fitted whole by least squares for
-# them; that pass stops within about one standard error of its optimum (decrement below half the
-# reduced chi-square), which adds about half a reduced chi-square to a sum over hundreds of
-# residuals: the noise levels estimated from them move by a percent or less. The answer is the
-# re-weighted pass's, to its own stop.
+# The least-squares pass over the whole recording gives only the noise levels (from its
+# residuals) and the start of the pass weighted by them, so it stops within about one standard
+# error of its optimum (decrement below half the reduced chi-square). That adds about half a
+# reduced chi-square to a sum over hundreds of residuals: the noise levels estimated from them
+# move by a percent or less. The answer is the re-weighted pass's, to its own stop.
 NOISE_PASS_FTOL = 0.5
 
 
@@ -245,13 +243,11 @@ def fit(
     A frequency error wraps the phase of an oscillation, so over a whole recording the loss has
     a minimum every cycle; over its first ``first_window`` seconds it has one. Each window (that
     length, doubling up to the whole recording) starts from the previous window's optimum. The
-    windows are fitted with the nominal noise scales, the whole recording with noise levels
-    estimated from the last window's residuals at its optimum (feasible generalised least
-    squares; a recording too short for a window is first fitted whole with the nominal scales
-    for them). Over the whole recording, where a Jacobian (the rollout's tangents) costs about
-    nine residuals, an accepted step updates it by Broyden's secant and the exact one is taken
-    to test convergence (``secant_jacobian``); on the shorter windows it cost more steps than it
-    saved. Progress is
+    whole recording is fitted twice: with the nominal noise scales, then with noise levels
+    estimated from the first pass's residuals (feasible generalised least squares). Over the whole
+    recording, where a Jacobian (the rollout's tangents) costs about nine residuals, an accepted
+    step updates it by Broyden's secant and the exact one is taken to test convergence
+    (``secant_jacobian``); on the shorter windows it cost more steps than it saved. Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
     Then the model error of the answer is measured on finer models (`discretisation.report`:
@@ -262,9 +258,10 @@ def fit(
     """
     t0 = time.perf_counter()
     duration = float(problem.t[-1] - problem.t[0])
-    stages = [(f"window {w:g} s", w) for w in windows(duration, first_window)[:-1]]
-    noise_pass = NOISE_PASS_FTOL if not stages else None  # a short recording's least-squares pass for the noise
-    stages += [("whole recording", None)] * (not stages) + [("whole recording, noise re-estimated", None)]
+    stages = [(f"window {w:g} s", w) for w in windows(duration, first_window)[:-1]] + [
+        ("whole recording", None),
+        ("whole recording, noise re-estimated", None),
+    ]
     state_file = None if state_dir is None else Path(state_dir) / "fit_state.json"
     theta = np.asarray(problem.to_theta(problem.initial_values))
     pb = problem.with_noise(NOMINAL_SIGMA)  # the noise levels and Huber loss of the current pass
@@ -329,15 +326,13 @@ def fit(
             continue
         initial = None
         if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
-            # noise levels from the previous (least-squares) pass's residuals over its frames; where
-            # that pass was the whole recording and ran here, its residuals and Jacobian reweighted
-            # under the Huber loss: no simulation
-            t_prev = stages[k - 1][1] if k > 0 else None
+            # noise levels from the previous (whole-recording, least-squares) pass's residuals, and
+            # its residuals and Jacobian reweighted under the Huber loss when it ran here: no simulation
             known = r is not None
             old = pb.sigma
-            res = (r if known else np.asarray(pb.residual(theta, t_prev))).reshape(-1, 3) * old
-            pb = pb.with_noise(robust.clean_noise_levels(res, np.asarray(pb.window(t_prev)[0]) > 0), robust.HUBER)
-            if known and t_prev is None:
+            res = (r if known else np.asarray(pb.residual(theta))).reshape(-1, 3) * old
+            pb = pb.with_noise(robust.clean_noise_levels(res, pb.keep), robust.HUBER)
+            if known:
                 z = (r.reshape(-1, 3) * (old / pb.sigma)).reshape(-1)
                 slope = np.asarray(robust.huber_slope(z, pb.huber))
                 w = np.tile(old / pb.sigma, r.size // 3)
@@ -348,7 +343,7 @@ def fit(
                 lambda th, pb=pb, t_end=t_end: pb.residual_and_jacobian(th, t_end),
                 theta,
                 max_iter,
-                ftol=(noise_pass if noise_pass and k == len(stages) - 2 else FINAL_FTOL) / pb.counted(t_end),
+                ftol=(NOISE_PASS_FTOL if k == len(stages) - 2 else FINAL_FTOL) / pb.counted(t_end),
                 max_step=pb.max_step,
                 start=resume if k == done else None,
                 save=lambda st, k=k: save(st, k),
