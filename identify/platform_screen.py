@@ -218,15 +218,25 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     plain = traces.jit_over(residual_of(False), "identify-polish", problem.scene, (), (identify,))
     from_push = traces.jit_over(residual_of(True), "identify-polish-push", problem.scene, (), (identify,))
 
+    def solved(y, first, then):
+        """(residuals by the program ``first``, or by ``then`` where its solve fails; whether
+        ``then`` gave them)"""
+        r = first(free, y)
+        if bool(jnp.all(jnp.isfinite(r))):
+            return r[: motion.rows], False
+        return then(free, y)[: motion.rows], True
+
     def residual(y):
-        r = plain(free, y)
-        return (r if bool(jnp.all(jnp.isfinite(r))) else from_push(free, y))[: motion.rows]
+        return solved(y, plain, from_push)[0]
 
     def with_jacobian(y):
+        # the differences take the rest the way the centre took it: where the plain solve failed
+        # there, it fails a step of 1e-6 away too, and a failed continuation costs twice a solve
         y = np.asarray(y, float)
-        r = np.asarray(residual(jnp.asarray(y)))
-        J = np.stack([(np.asarray(residual(jnp.asarray(y + FD_STEP * e))) - r) / FD_STEP for e in np.eye(y.size)], axis=1)
-        return r, J
+        r, pushed = solved(jnp.asarray(y), plain, from_push)
+        order = (from_push, plain) if pushed else (plain, from_push)
+        near = [solved(jnp.asarray(y + FD_STEP * e), *order)[0] for e in np.eye(y.size)]
+        return np.asarray(r), np.stack([(np.asarray(n) - np.asarray(r)) / FD_STEP for n in near], axis=1)
 
     def polish(y):
         try:
