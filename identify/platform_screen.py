@@ -234,9 +234,10 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
         # there, it fails a step of 1e-6 away too, and a failed continuation costs twice a solve
         y = np.asarray(y, float)
         r, pushed = solved(jnp.asarray(y), plain, from_push)
+        r = np.asarray(r)
         order = (from_push, plain) if pushed else (plain, from_push)
-        near = [solved(jnp.asarray(y + FD_STEP * e), *order)[0] for e in np.eye(y.size)]
-        return np.asarray(r), np.stack([(np.asarray(n) - np.asarray(r)) / FD_STEP for n in near], axis=1)
+        near = [np.asarray(solved(jnp.asarray(y + FD_STEP * e), *order)[0]) for e in np.eye(y.size)]
+        return r, np.stack([(n - r) / FD_STEP for n in near], axis=1)
 
     def polish(y):
         try:

@@ -345,6 +345,9 @@ def _start_and_chunk(scene, path, chunk: int):
             jax.block_until_ready(state)
             compiled = job.result()
     if _signature(state) != _signature(like):  # a leaf's weak type differs: compile for the state itself
+        key = _advance_key(scene, state, chunk, path)
+        if key is not None and key not in _COMPILED:
+            executables.make_room()
         compiled = _compiled_advance(scene, state, chunk, path)
     return static, state, compiled
 
