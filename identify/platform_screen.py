@@ -31,6 +31,7 @@ polished ones close to the best go on to the time-domain ranking with the full m
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -48,6 +49,7 @@ from .least_squares import FitError, levenberg_marquardt
 from .problem import padded_frames
 
 SCREENED = 1024  # sets of lengths screened (the nominal ones and a Latin hypercube)
+SCREEN_CHUNK = 128  # of them in one call of the screen's program
 TAUS = 25  # tau values screened per set of lengths, log-spaced over the prior's range
 POLISHED = 8  # the best screened polished by Levenberg-Marquardt
 KEPT = 3  # polished candidates passed on to the full model's ranking ...
@@ -186,12 +188,47 @@ def free_residual(motion, rest, w, phi, log_tau):
     return data - A @ amps
 
 
+def screen_costs(scene, free, log_taus, xs):
+    """The weighted sums of squares (len(xs), len(log_taus)) of the free motion ``free``
+    (`FreeMotion.arrays`) at each of the candidate log lengths ``xs`` and log tau ``log_taus``
+    (inf where the static solve fails): the screen's program.
+
+    One static solve and its compliance per candidate, one after another (`lax.map`): a call per
+    candidate would wait for the interpreter lock at every call while the fit's Jacobian is
+    traced in a thread beside it, and a `vmap` batch runs every member until its slowest has
+    finished. Each solve runs the platform's load continuation: Newton started from a solved
+    neighbour instead misses a few percent of the prior, in the corner where one rod is short
+    (triskele_push_release_r2's truth lies there). The tau grid is a `lax.map` too, so that each
+    least-squares fit of the amplitudes is one LAPACK call: JAX 0.10's LAPACK kernels split a
+    batch over XLA's intra-op threads and wait for the parts on that pool, and two programs doing
+    so at once on a pool of as many threads (the screen's threads on a 2-core machine) wait for
+    each other for ever. Unbatched, the screen also takes about 0.7 of the time."""
+
+    def costs(x):
+        rest, w, phi, ok = lumped(scene, x)
+        cost = jax.lax.map(lambda lt: jnp.sum(jnp.square(free_residual(free, rest, w, phi, lt))), log_taus)
+        return jnp.where(ok, cost, jnp.inf)
+
+    return jax.lax.map(costs, xs)
+
+
+def polish_residual(from_push: bool):
+    """``(scene, free, y) -> `free_residual` `` at log lengths ``y[:-1]`` and log tau ``y[-1]``
+    (NaN where the static solve fails; ``from_push``: `lumped_modes`): the polish's programs."""
+
+    def residual_at(scene, free, y):
+        rest, w, phi, ok = lumped(scene, y[:-1], from_push)
+        return jnp.where(ok, free_residual(free, rest, w, phi, y[-1]), jnp.nan)
+
+    return residual_at
+
+
 def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, seed: int = 0, warm=None):
     """(log tau, the candidate log lengths worth ranking with the full model, best first) of a
     planar push-release recording (see the module's text). ``theta``: the start (its lengths
     the nominal ones, its damping the scene's); ``warm()`` is called once the recording is
     known to hold enough free motion."""
-    from .start import latin_hypercube  # noqa: PLC0415 (start imports this module)
+    from .start import WORKERS, latin_hypercube  # noqa: PLC0415 (start imports this module)
 
     load = problem.scene.load  # free from the last event: a push released, or a load stepped on
     events = [float(np.asarray(v)) for v in (load.apply_time, load.release_time) if np.isfinite(np.asarray(v))]
@@ -205,18 +242,11 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     # `problem.padded_frames`) as arguments: recordings of one robot share them.
     free = motion.arrays(padded_frames(int(motion.t.size)))
 
-    def residual_of(from_push):
-        def residual_at(scene, free, y):
-            rest, w, phi, ok = lumped(scene, y[:-1], from_push)
-            return jnp.where(ok, free_residual(free, rest, w, phi, y[-1]), jnp.nan)
-
-        return residual_at
-
     # The polish's model, (log lengths, log tau) -> whitened residuals, is one program with its
     # trace kept on disk; where its static solve fails, the rest reached from the push
     # (`lumped_modes`), a program compiled only then.
-    plain = traces.jit_over(residual_of(False), "identify-polish", problem.scene, (), (identify,))
-    from_push = traces.jit_over(residual_of(True), "identify-polish-push", problem.scene, (), (identify,))
+    plain = traces.jit_over(polish_residual(False), "identify-polish", problem.scene, (), (identify,))
+    from_push = traces.jit_over(polish_residual(True), "identify-polish-push", problem.scene, (), (identify,))
 
     def solved(y, first, then):
         """(residuals by the program ``first``, or by ``then`` where its solve fails; whether
@@ -249,23 +279,13 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
 
     cands = np.log(latin_hypercube(np.exp(x0), prior_length, SCREENED, seed))
 
-    # One static solve and its compliance per candidate, one after another in one program
-    # (`lax.map`): a call per candidate would wait for the interpreter lock at every call while
-    # the fit's Jacobian is traced in a thread beside it. Not `vmap`: a batch runs every member
-    # until its slowest has finished. Each solve runs the platform's load continuation: Newton
-    # started from a solved neighbour instead misses a few percent of the prior, in the corner
-    # where one rod is short (triskele_push_release_r2's truth lies there).
-    # The scene, the free motion and the tau grid are its arguments.
-    def all_costs(scene, free, log_taus, xs):
-        def costs(x):
-            rest, w, phi, ok = lumped(scene, x)
-            cost = jax.vmap(lambda lt: jnp.sum(jnp.square(free_residual(free, rest, w, phi, lt))))(log_taus)
-            return jnp.where(ok, cost, jnp.inf)
-
-        return jax.lax.map(costs, xs)
-
-    screen_all = traces.jit_over(all_costs, "identify-screen", problem.scene, (), (identify,))
-    screened = np.asarray(screen_all(free, log_taus, jnp.asarray(cands)))
+    # the candidates in chunks of `SCREEN_CHUNK` (one program whatever the cores), one thread per core
+    screen_all = traces.jit_over(screen_costs, "identify-screen", problem.scene, (), (identify,))
+    costs = lambda c: np.asarray(screen_all(free, log_taus, c))  # noqa: E731
+    chunks = jnp.asarray(cands).reshape(-1, SCREEN_CHUNK, cands.shape[1])
+    first = costs(chunks[0])  # compiled once, before the threads
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
+        screened = np.concatenate([first, *pool.map(costs, chunks[1:])])
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)
@@ -279,7 +299,8 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
             f"{problem.rec.path}: the static solve fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
         )
     starts = [np.append(cands[i], log_taus[int(np.argmin(screened[i]))]) for i in order[:POLISHED]]
-    polished = sorted(map(polish, starts), key=lambda p: p[1])
+    with ThreadPoolExecutor(max_workers=WORKERS) as pool:  # its programs hold no batched LAPACK call
+        polished = sorted(pool.map(polish, starts), key=lambda p: p[1])
     kept = []
     for y, cost in polished:
         if np.isfinite(cost) and cost <= CLOSE * polished[0][1] and not any(np.max(np.abs(y - k)) < 1e-3 for k in kept):

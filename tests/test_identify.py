@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import types
 from pathlib import Path
 
@@ -157,6 +158,35 @@ def test_lumped_modes_from_the_push_hold_where_the_straight_rod_continuation_is_
             np.testing.assert_allclose(w_p, w, rtol=1e-9)
         lost += not bool(ok_p)
     assert lost >= 1  # the case this path is for (measured: 3 of 8)
+
+
+def _batched_lapack_calls(lowered_text: str) -> list[str]:
+    """The LAPACK custom calls of a lowered program whose operands carry a batch dimension."""
+    calls = re.findall(r"custom_call @(lapack_\w+)\(.*?\) .*?: \(([^)]*)\)", lowered_text)
+    return [name for name, types in calls if any(t.count("x") > 2 for t in re.findall(r"tensor<([^>]*)>", types))]
+
+
+def test_programs_the_screen_runs_in_threads_hold_no_batched_lapack_call():
+    """JAX 0.10's LAPACK kernels split a batch of matrices over XLA's intra-op threads and wait
+    for the parts on that pool; the screen ran its tau grid as a batch of least-squares solves, and
+    two chunks of it in two threads on a 2-core machine waited for each other for ever (native
+    stacks: both pool threads in `ParallelBatchMap` under `lapack_dgesdd_ffi`). The programs the
+    screen and the polish run side by side must hold none. Checked on the lowered programs; the
+    check itself finds the batch of a `vmap`ped least-squares solve."""
+    import jax
+
+    rec = load_recording(f"{DATA}/triskele_push_release_r2.csv")
+    scene = Problem(rec, ("tau", "lengths")).scene
+    motion = platform_screen.FreeMotion(rec, experiment.forcing_end(scene))
+    free = motion.arrays(motion.t.size)
+    x = jnp.log(jnp.array([[31.9e-3, 31.3e-3, 31.0e-3]]))
+    screen = jax.jit(platform_screen.screen_costs).lower(scene, free, jnp.zeros(3), x).as_text()
+    assert _batched_lapack_calls(screen) == []
+    for from_push in (False, True):
+        polish = jax.jit(platform_screen.polish_residual(from_push)).lower(scene, free, jnp.append(x[0], -7.0)).as_text()
+        assert _batched_lapack_calls(polish) == []
+    batched = jax.jit(jax.vmap(lambda a: jnp.linalg.lstsq(a, jnp.ones(6))[0])).lower(jnp.ones((5, 6, 2))).as_text()
+    assert _batched_lapack_calls(batched) == ["lapack_dgesdd_ffi"]
 
 
 def test_free_motion_screen_is_blind_to_aliasing_push_camera_and_clock():
