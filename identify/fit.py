@@ -116,6 +116,9 @@ FINAL_FTOL = 2e-3
 # error of its optimum (decrement below half the reduced chi-square). That adds about half a
 # reduced chi-square to a sum over hundreds of residuals: the noise levels estimated from them
 # move by a percent or less. The answer is the re-weighted pass's, to its own stop.
+# It stops on its secant Jacobian's test, and the re-weighted pass starts from that Jacobian
+# (taking the exact one where a step fails or it would stop): an exact Jacobian of the whole
+# recording costs four to five of its residuals.
 NOISE_PASS_FTOL = 0.5
 
 
@@ -351,6 +354,8 @@ def fit(
                 initial=initial,
                 huber=pb.huber,
                 secant_jacobian=t_end is None,
+                exact_test=k != len(stages) - 2,
+                initial_exact=initial is None,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))

@@ -42,6 +42,8 @@ def levenberg_marquardt(
     lam0: float = 1e-3,
     huber: float = math.inf,
     secant_jacobian: bool = False,
+    exact_test: bool = True,
+    initial_exact: bool = True,
 ):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
@@ -82,7 +84,10 @@ def levenberg_marquardt(
     of calling ``rj``. The exact Jacobian is taken where the secant one is not to be trusted:
     when a trial step fails (then the same damping is tried again), before convergence is
     declared (the test is made again with it) and at the end, so the returned ``J`` is always
-    ``rj``'s. The secant estimate ``S`` is updated between exact Jacobians only."""
+    ``rj``'s. The secant estimate ``S`` is updated between exact Jacobians only. Without
+    ``exact_test``, a secant Jacobian's convergence test stands and the ``J`` returned may be the
+    secant one (a pass whose answer only starts another); ``initial_exact`` False: ``initial``'s
+    Jacobian is such a one."""
     theta = np.asarray(theta0, float)
     lam, history, it0, S = lam0, [], 0, np.zeros((theta.size, theta.size))
     if start is not None:
@@ -96,7 +101,8 @@ def levenberg_marquardt(
         )
     if not history:
         history.append(cost)
-    exact, anchor = True, (theta, r, J)  # J is rj's at theta; the last point where it was
+    exact = initial_exact or initial is None or start is not None
+    anchor = (theta, r, J) if exact else None  # the last point where J was rj's
 
     def take_exact():
         """rj at theta, and the secant estimate updated over the steps since the last exact Jacobian."""
@@ -104,8 +110,8 @@ def levenberg_marquardt(
         r_new, J_new = (np.asarray(a) for a in rj(jnp.asarray(theta)))
         if not (np.all(np.isfinite(r_new)) and np.all(np.isfinite(J_new))):
             raise FitError("the Jacobian at an accepted step is not finite (its tangent solves did not converge)")
-        th0, r0, J0 = anchor
-        if np.any(theta != th0):
+        if anchor is not None and np.any(theta != anchor[0]):
+            th0, r0, J0 = anchor
             S = _secant_update(S, theta - th0, J_new.T @ r_new - J0.T @ r0, (J_new - _rescaled(J0, r0, r_new, huber)).T @ r_new)
         r, J, exact, anchor = r_new, J_new, True, (theta, r_new, J_new)
         cost = 0.5 * float(r @ r)
@@ -123,7 +129,7 @@ def levenberg_marquardt(
     converged = passes()
     it = it0
     for it in range(it0 + 1, max_iter + 1):
-        if converged and not exact:  # a secant Jacobian's test is made again with the exact one
+        if converged and not exact and exact_test:  # a secant Jacobian's test is made again with the exact one
             take_exact()
             converged = passes()
         if converged:
@@ -168,7 +174,7 @@ def levenberg_marquardt(
             progress(it, cost, float(np.max(np.abs(step))))
         small = np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
         converged = passes()
-    if not exact:  # out of iterations on a secant Jacobian: the exact one, and its test
+    if not exact and exact_test:  # out of iterations on a secant Jacobian: the exact one, and its test
         take_exact()
         converged = passes()
     return theta, J, r, it, converged, history
