@@ -400,6 +400,17 @@ def _exponential_decay_problem():
     return rf, rj, np.array([2.0, 1.3, 0.5])
 
 
+def _counting(rj):
+    """(``rj`` that counts its calls, the count: a list of one)."""
+    calls = [0]
+
+    def counted(x):
+        calls[0] += 1
+        return rj(x)
+
+    return counted, calls
+
+
 @pytest.mark.parametrize("case", ["large residual", "exponential decay"])
 def test_levenberg_marquardt_with_secant_jacobians_reaches_the_optimum_with_the_exact_jacobian(case):
     """Broyden's secant Jacobian between exact ones (``secant_jacobian``, for a rollout's
@@ -414,21 +425,38 @@ def test_levenberg_marquardt_with_secant_jacobians_reaches_the_optimum_with_the_
         start = np.array([1.0, 0.5, 0.0])
     runs = {}
     for secant in (False, True):
-        calls = {"rj": 0}
-
-        def counted(x, calls=calls):
-            calls["rj"] += 1
-            return rj(x)
-
+        counted, calls = _counting(rj)
         x, J, r, it, converged, _ = levenberg_marquardt(
             rf, counted, start, 60, ftol=1e-16, max_step=np.inf, secant_jacobian=secant
         )
         assert converged, (case, secant, it)
         assert np.max(np.abs(x - optimum)) < 1e-6, (case, secant, x)
         np.testing.assert_array_equal(J, rj(x)[1])  # the exact Jacobian at the answer
-        runs[secant] = calls["rj"], it
+        runs[secant] = calls[0], it
     if case == "exponential decay":
         assert runs[True][0] < runs[False][0] / 2, runs
+
+
+def test_a_pass_stopped_on_its_secant_jacobian_starts_the_next_from_it():
+    """The fit's least-squares pass over the whole recording only starts the noise-weighted one:
+    it stops on its secant Jacobian's test (``exact_test=False``) and the next pass starts from
+    that Jacobian (``initial_exact=False``), taking the exact one where it would stop. Oracle:
+    the exponential decay's closed-form optimum, the exact Jacobian returned there, and fewer
+    exact Jacobians than the same two passes with exact tests."""
+    rf, rj, optimum = _exponential_decay_problem()
+    counts = {}
+    for exact in (True, False):
+        counted, calls = _counting(rj)
+        x, J, r, *_ = levenberg_marquardt(
+            rf, counted, np.array([1.0, 0.5, 0.0]), 60, ftol=1e-2, max_step=np.inf, secant_jacobian=True, exact_test=exact
+        )
+        x, J, r, it, converged, _ = levenberg_marquardt(
+            rf, counted, x, 60, ftol=1e-16, max_step=np.inf, initial=(r, J), secant_jacobian=True, initial_exact=exact
+        )
+        assert converged and np.max(np.abs(x - optimum)) < 1e-6, (exact, x)
+        np.testing.assert_array_equal(J, rj(x)[1])
+        counts[exact] = calls[0]
+    assert counts[False] < counts[True], counts
 
 
 def _check_recovery(res, truth, names):
