@@ -248,9 +248,10 @@ def fit(
     length, doubling up to the whole recording) starts from the previous window's optimum. The
     whole recording is fitted twice: with the nominal noise scales, then with noise levels
     estimated from the first pass's residuals (feasible generalised least squares). Over the whole
-    recording, where a Jacobian (the rollout's tangents) costs about nine residuals, an accepted
-    step updates it by Broyden's secant and the exact one is taken to test convergence
-    (``secant_jacobian``); on the shorter windows it cost more steps than it saved. Progress is
+    recording, where a Jacobian (the rollout's tangents) costs four to five residuals, an
+    accepted step updates it by Broyden's secant and the exact one is taken to test convergence
+    (``secant_jacobian``; the first pass, which only starts the second, stops on the secant
+    one's test); on the shorter windows it cost more steps than it saved. Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
     Then the model error of the answer is measured on finer models (`discretisation.report`:
