@@ -329,6 +329,7 @@ def fit(
         if k < done:
             continue
         initial = None
+        for_noise = k == len(stages) - 2  # the least-squares pass: the noise levels and a start
         if k == len(stages) - 1 and (resume is None or k > done or resume["iteration"] == 0):
             # noise levels from the previous (whole-recording, least-squares) pass's residuals, and
             # its residuals and Jacobian reweighted under the Huber loss when it ran here: no simulation
@@ -347,7 +348,7 @@ def fit(
                 lambda th, pb=pb, t_end=t_end: pb.residual_and_jacobian(th, t_end),
                 theta,
                 max_iter,
-                ftol=(NOISE_PASS_FTOL if k == len(stages) - 2 else FINAL_FTOL) / pb.counted(t_end),
+                ftol=(NOISE_PASS_FTOL if for_noise else FINAL_FTOL) / pb.counted(t_end),
                 max_step=pb.max_step,
                 start=resume if k == done else None,
                 save=lambda st, k=k: save(st, k),
@@ -355,8 +356,8 @@ def fit(
                 initial=initial,
                 huber=pb.huber,
                 secant_jacobian=t_end is None,
-                exact_test=k != len(stages) - 2,
-                initial_exact=initial is None,
+                exact_test=not for_noise,
+                initial_exact=False,  # an initial comes from the least-squares pass: maybe its secant Jacobian
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))
