@@ -28,7 +28,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from . import discretisation, experiment, profile, robust, start
+from . import discretisation, experiment, profile, robust, start, threads
 from .least_squares import FitError, levenberg_marquardt, standard_errors_theta
 from .problem import CLOCK_STARTS, NOMINAL_SIGMA, Problem
 from .result import Result, summarize
@@ -63,11 +63,14 @@ def modal_start(
     i_len = problem.slices["lengths"]
     t_from = experiment.forcing_end(problem.scene)
     t_screen = t_from + screen_window
-    ranked = []
-    for x in found:
+
+    def rank(x):
         th = theta.copy()
         th[i_len] = x
-        th, cost = problem.fit_linear(th, t_from + rank_window, clocks=CLOCK_STARTS)
+        return problem.fit_linear(th, t_from + rank_window, clocks=CLOCK_STARTS)
+
+    ranked = []
+    for x, (th, cost) in zip(found, threads.map_in_threads(rank, found), strict=True):
         if progress is not None:
             progress(
                 f"candidate lengths {np.round(np.exp(x) * 1e3, 3).tolist()} mm, push and camera fitted",
@@ -81,10 +84,10 @@ def modal_start(
         raise FitError(f"{problem.rec.path}: the simulation fails at every candidate set of lengths")
     if len(ranked) == 1:  # the others' simulations fail
         return ranked[0][2], None
-    best, best_hist, iterations = None, [np.inf], 0
-    for j, (_, _, th) in enumerate(ranked):
+
+    def screen(th):
         try:
-            th, _, _, it, _, hist = levenberg_marquardt(
+            return levenberg_marquardt(
                 lambda a: problem.residual(a, t_screen),
                 lambda a: problem.residual_and_jacobian(a, t_screen),
                 th,
@@ -93,7 +96,14 @@ def modal_start(
                 max_step=problem.max_step,
             )
         except FitError:  # the simulation fails there: not a candidate
+            return None
+
+    best, best_hist, iterations = None, [np.inf], 0
+    # the programs have run (the ranking's rollouts, the Jacobian's compile): no first alone
+    for j, out in enumerate(threads.map_in_threads(screen, [c[2] for c in ranked], first_alone=False)):
+        if out is None:
             continue
+        th, _, _, it, _, hist = out
         iterations += it
         if progress is not None:
             progress(f"candidate lengths {np.round(np.exp(th[i_len]) * 1e3, 3).tolist()} mm, screened", j + 1, hist[-1], 0.0)

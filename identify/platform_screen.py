@@ -31,7 +31,6 @@ polished ones close to the best go on to the time-domain ranking with the full m
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -44,7 +43,7 @@ from pcrjax.numerics import results
 from pcrjax.physics.rotations import rotation_vector
 from pcrjax.robots import statics
 
-from . import experiment
+from . import experiment, threads
 from .least_squares import FitError, levenberg_marquardt
 from .problem import padded_frames
 
@@ -228,7 +227,7 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     planar push-release recording (see the module's text). ``theta``: the start (its lengths
     the nominal ones, its damping the scene's); ``warm()`` is called once the recording is
     known to hold enough free motion."""
-    from .start import WORKERS, latin_hypercube  # noqa: PLC0415 (start imports this module)
+    from .start import latin_hypercube  # noqa: PLC0415 (start imports this module)
 
     load = problem.scene.load  # free from the last event: a push released, or a load stepped on
     events = [float(np.asarray(v)) for v in (load.apply_time, load.release_time) if np.isfinite(np.asarray(v))]
@@ -283,9 +282,7 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     screen_all = traces.jit_over(screen_costs, "identify-screen", problem.scene, (), (identify,))
     costs = lambda c: np.asarray(screen_all(free, log_taus, c))  # noqa: E731
     chunks = jnp.asarray(cands).reshape(-1, SCREEN_CHUNK, cands.shape[1])
-    first = costs(chunks[0])  # compiled once, before the threads
-    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        screened = np.concatenate([first, *pool.map(costs, chunks[1:])])
+    screened = np.concatenate(list(threads.map_in_threads(costs, chunks)))
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)
@@ -299,8 +296,7 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
             f"{problem.rec.path}: the static solve fails at every one of {len(cands)} sets of lengths within ±{prior_length:g} m of nominal"
         )
     starts = [np.append(cands[i], log_taus[int(np.argmin(screened[i]))]) for i in order[:POLISHED]]
-    with ThreadPoolExecutor(max_workers=WORKERS) as pool:  # its programs hold no batched LAPACK call
-        polished = sorted(pool.map(polish, starts), key=lambda p: p[1])
+    polished = sorted(threads.map_in_threads(polish, starts, first_alone=False), key=lambda p: p[1])
     kept = []
     for y, cost in polished:
         if np.isfinite(cost) and cost <= CLOSE * polished[0][1] and not any(np.max(np.abs(y - k)) < 1e-3 for k in kept):

@@ -420,7 +420,7 @@ class Problem:
 
     def _clock_scan_fn(self, starts, m0, dm, theta, push, noise, mask):
         """(each of ``starts`` (S, unknowns) after CLOCK_ITER Levenberg-Marquardt iterations on
-        `_linear_residual_fn`, its cost), all starts at once: a fixed number of iterations, each
+        `_linear_residual_fn`, its cost), in one program: a fixed number of iterations, each
         a step that is taken where it lowers the cost (the damping then falls tenfold, else it
         rises tenfold)."""
         rf = lambda x: self._linear_residual_fn(x, m0, dm, theta, push, noise, mask)  # noqa: E731
@@ -442,7 +442,9 @@ class Problem:
             x, cost, _ = jax.lax.fori_loop(0, CLOCK_ITER, iteration, (x, 0.5 * r @ r, jnp.asarray(1e-3, x.dtype)))
             return x, cost
 
-        return jax.vmap(one)(starts)
+        # one start after the other: a batch of them would make each step's solve a batched LAPACK
+        # call, which two programs run side by side must not hold (`identify.threads`)
+        return jax.lax.map(one, starts)
 
     def _linear_residual_fn(self, x, m0, dm, theta, push, noise, mask):
         """Residuals with the motion ``m0`` moved along the push tangents ``dm`` by the push's

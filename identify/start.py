@@ -43,9 +43,6 @@ repeated at the new tau until it settles, and kept within a decade of nominal ei
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -54,7 +51,7 @@ import identify
 from pcrjax import traces
 from pcrjax.robots.signals import Actuation
 
-from . import experiment, modes, platform_screen
+from . import experiment, modes, platform_screen, threads
 from .platform_screen import planar_rest
 from .recording import RecordingError
 
@@ -74,7 +71,6 @@ FEATURE_STRENGTH = 0.05  # recorded oscillations matched: at least this of the s
 SHAPE_STRENGTH = 0.2  # ... and their shapes too: at least this
 SHAPE_WEIGHT = 0.3  # a mode shape's relative error counts less than its frequency's
 MODEL_ORDER = 13  # the matrix pencil's order on the model's motion: six oscillations and a drift
-WORKERS = max(1, os.cpu_count() or 1)  # threads of the screen and the polish
 
 
 def latin_hypercube(center, half_width, n: int, seed: int = 0):
@@ -214,11 +210,11 @@ class Features:
     def of_all(self, xs, warm=None) -> list:
         """`of` each of the log lengths ``xs`` (n, rods), on as many threads as there are cores.
         ``warm()`` is called once the program has compiled (the caller compiles beside the rest)."""
-        self.of(xs[0])  # compiles once, before the threads
+        found = threads.map_in_threads(self.of, xs)
+        first = next(found)  # compiles once, before the threads
         if warm is not None:
             warm()
-        with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-            return list(pool.map(self.of, xs))
+        return [first, *found]
 
     def distance(self, features, shapes: bool = True) -> float:
         """Weighted relative distance of model ``features`` to the recorded ones (inf: failed);
@@ -311,8 +307,7 @@ def initial_lengths(problem, theta, progress=None, warm=None, prior_length: floa
     def polish(x):
         return modes.match_frequencies(feats.of, x, feats.recorded, max_iter=8, tol=1e-3, weights=feats.weights, bounds=box)
 
-    with ThreadPoolExecutor(max_workers=WORKERS) as pool:
-        polished = list(pool.map(polish, cands[ok[:n_polish]]))
+    polished = list(threads.map_in_threads(polish, cands[ok[:n_polish]]))
     reached = [feats.of(x) for x, _ in polished]
     # a match is judged on the frequencies alone: a shape read off an aliased, noisy recording
     # can be a factor 10 off where the frequencies agree to 1 % (the finer-grid suite)

@@ -189,6 +189,37 @@ def test_programs_the_screen_runs_in_threads_hold_no_batched_lapack_call():
     assert _batched_lapack_calls(batched) == ["lapack_dgesdd_ffi"]
 
 
+def test_programs_the_modal_start_ranks_and_screens_with_in_threads_hold_no_batched_lapack_call():
+    """The modal start ranks its candidates by push-and-camera fits, and screens the best two by
+    short fits of every unknown, on one thread per core (`identify.threads`): the rollout's
+    residual and Jacobian, the push-and-camera residual and Jacobian and the clock scan then run
+    side by side, and must hold no batched LAPACK call. The clock scan's 41 starts as a `vmap`
+    made its solve a batched LU (41 x 6 x 6)."""
+    import jax
+
+    rec = load_recording(f"{DATA}/triskele_push_release_r2.csv")
+    pb = Problem(rec, ("tau", "lengths"))
+    theta = pb.to_theta(pb.initial_values)
+    noise, (mask, active) = pb._noise(), pb.window(0.1)
+    motion = jax.eval_shape(lambda th: Problem._residual_fn(pb, th, noise, mask, active), theta)[1]
+    m0 = jnp.zeros(motion.shape)
+    push = jnp.arange(pb.n_physical)[pb.slices["push_force"].start : pb.slices["push_moment"].stop]
+    dm = jnp.zeros((*motion.shape, push.size))
+    x = jnp.zeros(push.size + theta.size - pb.n_physical)
+    linear = (m0, dm, theta, push, noise, mask)
+    programs = {
+        "residual": (Problem._residual_fn, theta, noise, mask, active),
+        "jacobian": (Problem._residual_and_jacobian_fn, theta, noise, mask, active),
+        "linear residual": (Problem._linear_residual_fn, x, *linear),
+        "linear jacobian": (jax.jacfwd(Problem._linear_residual_fn, argnums=1), x, *linear),
+        "clock scan": (Problem._clock_scan_fn, jnp.tile(x, (len(CLOCK_STARTS), 1)), *linear),
+    }
+    for name, (method, *args) in programs.items():
+        text = jax.jit(lambda *a, method=method: method(pb, *a)).lower(*args).as_text()
+        assert "lapack" in text or name.startswith("linear"), name  # the checker sees the solves
+        assert _batched_lapack_calls(text) == [], name
+
+
 def test_free_motion_screen_is_blind_to_aliasing_push_camera_and_clock():
     """`platform_screen.FreeMotion`: three damped modes filmed at 114.44 frames/s (all three
     alias), through a rotated, offset camera with a clock offset, missing frames and noise: at
