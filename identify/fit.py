@@ -99,7 +99,8 @@ def modal_start(
             return None
 
     best, best_hist, iterations = None, [np.inf], 0
-    # the programs have run (the ranking's rollouts, the Jacobian's compile): no first alone
+    # no first alone: the ranking ran the residual's program, and calls of the Jacobian's while
+    # the fit's background thread compiles it wait for that one compile
     for j, out in enumerate(threads.map_in_threads(screen, [c[2] for c in ranked], first_alone=False)):
         if out is None:
             continue

@@ -189,7 +189,7 @@ def test_programs_the_screen_runs_in_threads_hold_no_batched_lapack_call():
     assert _batched_lapack_calls(batched) == ["lapack_dgesdd_ffi"]
 
 
-def test_programs_the_modal_start_ranks_and_screens_with_in_threads_hold_no_batched_lapack_call():
+def test_programs_of_the_threaded_ranking_and_screening_hold_no_batched_lapack_call():
     """The modal start ranks its candidates by push-and-camera fits, and screens the best two by
     short fits of every unknown, on one thread per core (`identify.threads`): the rollout's
     residual and Jacobian, the push-and-camera residual and Jacobian and the clock scan then run
