@@ -198,10 +198,9 @@ def screen_costs(scene, free, log_taus, xs):
     finished. Each solve runs the platform's load continuation: Newton started from a solved
     neighbour instead misses a few percent of the prior, in the corner where one rod is short
     (triskele_push_release_r2's truth lies there). The tau grid is a `lax.map` too, so that each
-    least-squares fit of the amplitudes is one LAPACK call: JAX 0.10's LAPACK kernels split a
-    batch over XLA's intra-op threads and wait for the parts on that pool, and two programs doing
-    so at once on a pool of as many threads (the screen's threads on a 2-core machine) wait for
-    each other for ever. Unbatched, the screen also takes about 0.7 of the time."""
+    least-squares fit of the amplitudes is one LAPACK call: the screen's chunks run side by side,
+    which a batched LAPACK call would hang (`identify.threads`). Unbatched, the screen also takes
+    about 0.7 of the time."""
 
     def costs(x):
         rest, w, phi, ok = lumped(scene, x)
