@@ -209,7 +209,7 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
                 ftol=FINAL_FTOL / pb.counted(None),
                 max_step=pb.max_step,
                 huber=pb.huber,
-                secant_jacobian=True,
+                geodesic=True,
             )
         except FitError as e:
             notes.append(f"the fit from the profiles' lower minimum {e}")
@@ -259,10 +259,13 @@ def fit(
     length, doubling up to the whole recording) starts from the previous window's optimum. The
     whole recording is fitted twice: with the nominal noise scales, then with noise levels
     estimated from the first pass's residuals (feasible generalised least squares). Over the whole
-    recording, where a Jacobian (the rollout's tangents) costs four to five residuals, an
-    accepted step updates it by Broyden's secant and the exact one is taken to test convergence
-    (``secant_jacobian``; the first pass, which only starts the second, stops on the secant
-    one's test); on the shorter windows it cost more steps than it saved. Progress is
+    recording a Jacobian (the rollout's tangents) costs four to five residuals, so an accepted
+    step there updates it by Broyden's secant (``secant_jacobian``; the first pass, which only
+    starts the second, stops on the secant one's test), until a step on the secant fails: then
+    the pass is in a curved valley of the loss, and it takes the exact Jacobian at every
+    accepted step and corrects each step for the valley's curvature by geodesic acceleration
+    (``geodesic``). On the shorter windows, where a Jacobian costs less beside a residual, plain
+    steps on the exact Jacobian. Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
     Then the model error of the answer is measured on finer models (`discretisation.report`:
@@ -369,6 +372,7 @@ def fit(
                 secant_jacobian=t_end is None,
                 exact_test=not for_noise,
                 initial_exact=False,  # an initial comes from the least-squares pass: maybe its secant Jacobian
+                geodesic=t_end is None,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))
