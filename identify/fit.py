@@ -209,6 +209,7 @@ def _profiled(pb: Problem, theta, J, r, result: Result, max_iter, progress) -> t
                 ftol=FINAL_FTOL / pb.counted(None),
                 max_step=pb.max_step,
                 huber=pb.huber,
+                secant_jacobian=True,
                 geodesic=True,
             )
         except FitError as e:
