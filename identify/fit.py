@@ -262,11 +262,11 @@ def fit(
     estimated from the first pass's residuals (feasible generalised least squares). Over the whole
     recording a Jacobian (the rollout's tangents) costs four to five residuals, so an accepted
     step there updates it by Broyden's secant (``secant_jacobian``; the first pass, which only
-    starts the second, stops on the secant one's test), until a step on the secant fails: then
-    the pass is in a curved valley of the loss, and it takes the exact Jacobian at every
-    accepted step and corrects each step for the valley's curvature by geodesic acceleration
-    (``geodesic``). On the shorter windows, where a Jacobian costs less beside a residual, plain
-    steps on the exact Jacobian. Progress is
+    starts the second, stops on the secant one's test) until a step on the secant fails, and
+    takes the exact one after that; every step taken on an exact Jacobian there is corrected
+    for the curvature of the loss's valley by geodesic acceleration (``geodesic``). The shorter
+    windows, where a Jacobian costs less beside a residual, take plain steps on the exact
+    Jacobian. Progress is
     saved to ``state_dir/fit_state.json`` after every iteration; a fit started again with the
     same state folder resumes where it stopped. ``progress(stage, iteration, loss, step)``.
     Then the model error of the answer is measured on finer models (`discretisation.report`:

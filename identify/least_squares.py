@@ -93,13 +93,14 @@ def levenberg_marquardt(
     ``geodesic``: each trial step on an exact Jacobian is corrected by geodesic acceleration
     (`_accelerated`, Transtrum and Sethna's), for one more residual per trial. Where the valley
     of the loss is curved, Gauss-Newton steps leave its floor and the iterations crawl along it,
-    and a secant Jacobian fails there again and again: with ``secant_jacobian`` too, the secant
-    is used until a step on it fails, and every accepted step takes the exact Jacobian after
-    that. The noise-weighted passes of the Triskele push-releases, replayed from their starts
-    (exact Jacobians + residuals): `triskele_push_release_r1` 5 + 10 with both, against 4 + 7
-    with geodesic steps on exact Jacobians alone, 6 + 6 with plain ones and 7 + 15 with the
-    secant alone; `triskele_push_release_r2` 2 + 6, against 4 + 7, and 3 + 7 with the secant
-    alone."""
+    and a secant Jacobian's steps fail there again and again: with ``secant_jacobian`` too, the
+    secant is used until a step on it fails, and every accepted step takes the exact Jacobian
+    after that. The noise-weighted passes of the Triskele push-releases, replayed from their
+    starts (exact Jacobians + residuals): on `triskele_push_release_r1`, 5 + 10 with both, 4 + 7
+    with geodesic steps on exact Jacobians throughout, 6 + 6 with plain steps on exact
+    Jacobians, 7 + 15 with the secant alone; on `triskele_push_release_r2`, 2 + 6 with both,
+    4 + 7 with geodesic steps on exact Jacobians throughout, 3 + 7 with the secant alone. Both
+    together cost the fewest Jacobians over the two."""
     theta = np.asarray(theta0, float)
     lam, history, it0, S = lam0, [], 0, np.zeros((theta.size, theta.size))
     if start is not None:
@@ -133,7 +134,8 @@ def levenberg_marquardt(
         return J.T @ r, A + S, np.diag(np.diag(A) + 1e-12 * np.max(np.diag(A)))
 
     small = False  # the last step moved theta by less than xtol
-    secant = secant_jacobian  # an accepted step updates J by the secant
+    # an accepted step updates J by the secant (a resumed pass as where it stopped)
+    secant = secant_jacobian and (start is None or start.get("secant_steps", True))
 
     def passes():
         """The convergence test at theta: the decrement within ftol of the cost, or a step below xtol."""
@@ -185,7 +187,7 @@ def levenberg_marquardt(
             take_exact()
         history.append(cost)
         if save is not None:
-            save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist()))
+            save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist(), secant_steps=secant))
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
         small = np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))

@@ -490,14 +490,9 @@ def test_a_pass_stopped_on_its_secant_jacobian_starts_the_next_from_it():
     assert counts[False] < counts[True], counts
 
 
-def test_geodesic_acceleration_follows_a_curved_valley_in_fewer_jacobians():
-    """Rosenbrock's valley as least squares, r = (100 (y - x^2), 1 - x), from (-1.2, 1): the
-    Gauss-Newton step leaves the curved valley floor and the damping cuts it short (118
-    iterations on the exact Jacobian; on Broyden's secant the fit stalls). With geodesic
-    acceleration (``geodesic``: the step corrected by the residuals' second derivative along
-    it, one more residual each), from the exact Jacobian or from the secant (exact ones once a
-    secant step fails), the fit reaches the closed-form optimum (1, 1) with under half the
-    Jacobians of the exact plain steps, and returns the exact Jacobian there."""
+def _rosenbrock():
+    """Rosenbrock's valley as least squares, r = (100 (y - x^2), 1 - x): a curved valley whose
+    closed-form optimum is (1, 1)."""
 
     def rf(p):
         return np.array([100.0 * (p[1] - p[0] ** 2), 1.0 - p[0]])
@@ -505,6 +500,18 @@ def test_geodesic_acceleration_follows_a_curved_valley_in_fewer_jacobians():
     def rj(p):
         return rf(p), np.array([[-200.0 * p[0], 100.0], [-1.0, 0.0]])
 
+    return rf, rj
+
+
+def test_geodesic_acceleration_follows_a_curved_valley_in_fewer_jacobians():
+    """On Rosenbrock's valley from (-1.2, 1) the Gauss-Newton step leaves the curved valley floor
+    and the damping cuts it short (118 iterations on the exact Jacobian; on Broyden's secant
+    the fit stalls). With geodesic acceleration (``geodesic``: the step corrected by the
+    residuals' second derivative along it, one more residual each), from the exact Jacobian or
+    from the secant (exact ones once a secant step fails), the fit reaches the closed-form
+    optimum (1, 1) with under half the Jacobians of the exact plain steps, and returns the exact
+    Jacobian there."""
+    rf, rj = _rosenbrock()
     jacobians = {}
     for geodesic, secant in ((False, False), (True, False), (True, True)):
         counted, calls = _counting(rj)
@@ -515,6 +522,34 @@ def test_geodesic_acceleration_follows_a_curved_valley_in_fewer_jacobians():
         np.testing.assert_array_equal(J, rj(x)[1])
         jacobians[geodesic, secant] = calls[0]
     assert max(jacobians[True, False], jacobians[True, True]) < jacobians[False, False] / 2, jacobians
+
+
+def test_a_resumed_pass_keeps_the_exact_jacobians_it_had_switched_to():
+    """A pass on the secant with geodesic steps that switched to exact Jacobians, interrupted and
+    resumed from its saved state, goes on with exact ones: it ends at the same point as the
+    uninterrupted run, the closed-form optimum (1, 1) of Rosenbrock's valley, with the same
+    residual evaluations after that state (a secant step taken again would cost a failed trial
+    more)."""
+    rf, rj = _rosenbrock()
+    kw = dict(ftol=1e-16, max_step=np.inf, geodesic=True, secant_jacobian=True)
+
+    count = [0]
+
+    def counted(p):
+        count[0] += 1
+        return rf(p)
+
+    states = []  # (saved state, residuals evaluated by then)
+    x, *_ = levenberg_marquardt(counted, rj, np.array([-1.2, 1.0]), 300, save=lambda st: states.append((st, count[0])), **kw)
+    assert np.max(np.abs(x - 1.0)) < 1e-6, x
+    state, evaluated = states[len(states) // 2]
+    assert not state["secant_steps"]  # switched by then
+    after = count[0] - evaluated
+    count[0] = 0
+    y, *_, converged, _ = levenberg_marquardt(counted, rj, np.array([-1.2, 1.0]), 300, start=state, **kw)
+    assert converged
+    np.testing.assert_array_equal(y, x)
+    assert count[0] == after, (count[0], after)
 
 
 def _check_recovery(res, truth, names):
