@@ -168,7 +168,8 @@ def levenberg_marquardt(
                     break
             if not exact:  # the secant Jacobian may be what failed: the exact one, same damping
                 take_exact()
-                secant = secant_jacobian and not geodesic  # with geodesic steps, exact ones from here
+                if geodesic:  # exact Jacobians from here
+                    secant = False
                 g, model, scale = hessian_model()
                 continue
             if step is None:  # no damping makes the model definite (a non-finite Jacobian): no step to try

@@ -532,13 +532,7 @@ def test_a_resumed_pass_keeps_the_exact_jacobians_it_had_switched_to():
     more)."""
     rf, rj = _rosenbrock()
     kw = dict(ftol=1e-16, max_step=np.inf, geodesic=True, secant_jacobian=True)
-
-    count = [0]
-
-    def counted(p):
-        count[0] += 1
-        return rf(p)
-
+    counted, count = _counting(rf)
     states = []  # (saved state, residuals evaluated by then)
     x, *_ = levenberg_marquardt(counted, rj, np.array([-1.2, 1.0]), 300, save=lambda st: states.append((st, count[0])), **kw)
     assert np.max(np.abs(x - 1.0)) < 1e-6, x
