@@ -59,8 +59,17 @@ push-release r2 (truth tau 0.67 ms, fit N 10) the space moves were 45.7, 8.99 an
 80 nodes, at order 3.98 for the last two: extrapolated, the time chain runs at 40 nodes, half
 the cost of 80 at every dt.
 
-Through the fit's windows of growing length (the first refit of each chain: the coarse answer
-can be cycles of phase off the finer grid's over a whole recording) a refit holds the fit's
+The first refit of each chain goes over the whole recording at once where the fit's Jacobian
+puts the finer grid's optimum within reach of the coarse answer (its Gauss-Newton step from
+there, on the finer grid's residuals, is ``NEAR_SE`` standard errors at most); else through
+the fit's windows of growing length, as the coarse answer can be cycles of phase off the finer
+grid's over a whole recording. On `triskele_push_release_r1` that step was 2.2 standard errors
+to 20 nodes (the move 0.23): that refit took 11 residuals and 3 Jacobians of the whole
+recording, where through the windows it took 50 residuals of windows, 12 of the whole and 3
+Jacobians (a process that ran it took 0.75 of the time), to the same values within 0.002
+standard errors. The step was 462 standard errors to dt 0.25 ms (the move 12.8): over the whole recording
+at once from there, that time refit ended after four of its Jacobians at a reduced chi-square
+of 0.930, where through the windows it reaches 0.854. Through the windows a refit holds the fit's
 Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian, each step taken
 only where it lowers the cost), so an iteration costs one rollout of the window and no tangents.
 Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, then takes the
@@ -148,6 +157,7 @@ STILL = 0.05  # a refit ends when its linearisation puts the parameters this man
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
 ORDER_BAND = 0.5  # moves shrinking at an observed order within this of the scheme's are extrapolated
+NEAR_SE = 3.0  # a refit whose held Jacobian's first step is this many standard errors at most needs no windows
 RIVAL_SE = 3.0  # a start this many standard errors from the answer (in a measured parameter) may lie in another basin
 CLOSE = 2.0  # optima whose losses differ by less (chi-square 4: two standard deviations) fit a recording equally well
 
@@ -278,7 +288,7 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
     return theta, r, it
 
 
-def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH):
+def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH, r0=None):
     """(theta, residuals, iterations, Jacobians, distance) minimising ``problem``'s residuals over
     the whole recording from ``theta``. Over the windows ending at ``window_ends`` before the
     last (the fit's continuation: a coarse grid's answer can be cycles of phase off over a long
@@ -289,14 +299,16 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     errors from the optimum, Levenberg-Marquardt goes on with the refined model's Jacobian at
     every step, ``refresh`` Jacobians in all (0: ``J`` held to the end). ``distance``: that
     decrement as standard errors, sqrt(2 decrement), at the answer (None where ``J`` was held
-    to the end). Raises `FitError` where the refined model's rollout fails."""
+    to the end). ``r0``: the residuals at ``theta`` over the whole recording, if known (used
+    where there are no windows). Raises `FitError` where the refined model's rollout fails."""
     total = 0
     for t_end in window_ends[:-1]:
         theta, _, it = _held(problem, theta, J, t_end, max_iter)
         total += it
     still = 0.5 * STILL**2  # the decrement of a parameter STILL standard errors off a quadratic optimum
     # the held Jacobian first (cheap iterations, where it is close), then the model's own
-    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still)
+    known = r0 if len(window_ends) == 1 else None  # the residuals at theta, where no window came first
+    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still, known)
     total += it
     if not refresh:
         return theta, r, total, 0, None
@@ -317,15 +329,24 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
 
 
+def _near(fine, theta, J, huber):
+    """(whether the refined model ``fine``'s optimum lies within the linearisation's reach of
+    ``theta``, the residuals there over the whole recording): the Gauss-Newton step of the
+    Jacobian ``J`` (the fit's) from ``theta`` is ``NEAR_SE`` standard errors at most, so a refit
+    needs no windows (the fit's continuation against a loss with a minimum every cycle)."""
+    r = np.asarray(fine.residual(theta))
+    return bool(np.all(np.isfinite(r)) and np.sqrt(2.0 * decrement(J, r, huber)) <= NEAR_SE), r
+
+
 def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
     """(theta, residuals, iterations, Jacobians, distance) of the first `chord_refit` of ``fine`` from
-    ``tries`` ((start, window ends), in order) that ends within ``WORSE`` times the fit's
+    ``tries`` ((start, window ends[, residuals at start over the whole recording]), in order) that ends within ``WORSE`` times the fit's
     reduced chi-square ``chi2`` (``m`` degrees of freedom); raises `FitError` saying why the
     last did not (a finer model that fits far worse than the coarse one: a wrong minimum)."""
     iterations = jacobians = 0
-    for start, ends in tries:
+    for start, ends, *known in tries:
         try:
-            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh)
+            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=known[0] if known else None)
         except FitError as e:
             why = f"failed ({e})"
             continue
@@ -376,10 +397,16 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         t0 = time.perf_counter()
         say(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
-        # from the predicted optimum over the whole recording at once; else (or if that fails)
-        # from the coarser optimum through the windows; on the fit's own grid (a tighter
-        # tolerance) the fit's Jacobian is the model's
-        tries = ([(predicted, (None,))] if predicted is not None else []) + [(base, windows)]
+        # over the whole recording at once from the predicted optimum, or from the coarser one
+        # where the fit's Jacobian puts this grid's optimum within reach (`_near`); else (or if
+        # that fails) from the coarser optimum through the windows; on the fit's own grid (a
+        # tighter tolerance) the fit's Jacobian is the model's
+        tries = [(predicted, (None,))] if predicted is not None else []
+        if not tries and len(windows) > 1:
+            near, r0 = _near(fine, base, J, problem.huber)
+            if near:
+                tries.append((base, (None,), r0))
+        tries.append((base, windows))
         try:
             th, r, iterations, jacobians, distance = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
