@@ -524,6 +524,36 @@ def test_geodesic_acceleration_follows_a_curved_valley_in_fewer_jacobians():
     assert max(jacobians[True, False], jacobians[True, True]) < jacobians[False, False] / 2, jacobians
 
 
+def test_geodesic_correction_is_half_the_acceleration_where_it_is_small_beside_the_step():
+    """Residuals quadratic along every line, ``r = A theta - b + 0.5 c |theta|^2 u``, have the
+    closed-form second directional derivative ``r_vv = c |v|^2 u`` (the finite difference of
+    `least_squares._accelerated` is exact for them). The step is corrected to ``v + a / 2``,
+    ``a = -damped^{-1} J^T r_vv``, where twice the acceleration is at most ``GEODESIC_RATIO``
+    of the step in the damping's metric, and left ``v`` where it is larger or the corrected
+    step leaves the trust region."""
+    from identify import least_squares as ls
+
+    rng = np.random.default_rng(11)
+    A, u = rng.standard_normal((12, 3)), rng.standard_normal(12)
+    b, theta = rng.standard_normal(12), np.array([0.3, -0.2, 0.5])
+    for c, v, corrected in ((0.05, np.array([0.1, 0.05, -0.08]), True), (5.0, np.array([0.2, 0.1, -0.16]), False)):
+
+        def rf(x, c=c):
+            return A @ x - b + 0.5 * c * float(x @ x) * u
+
+        J = A + c * np.outer(u, theta)
+        scale = np.diag(np.diag(J.T @ J))
+        damped = J.T @ J + 1e-3 * scale
+        a = -np.linalg.solve(damped, J.T @ (c * float(v @ v) * u))
+        ratio = 2 * np.sqrt(a @ scale @ a) / np.sqrt(v @ scale @ v)
+        assert (ratio <= ls.GEODESIC_RATIO) == corrected, ratio  # one case on each side of the bound
+        step = ls._accelerated(rf, theta, rf(theta), J, v, damped, scale, np.inf)
+        np.testing.assert_allclose(step, v + 0.5 * a if corrected else v, rtol=1e-7, atol=1e-12)
+        if corrected:  # a trust region the corrected step just leaves: the plain step
+            bound = 0.999 * np.max(np.abs(v + 0.5 * a))
+            np.testing.assert_array_equal(ls._accelerated(rf, theta, rf(theta), J, v, damped, scale, bound), v)
+
+
 def test_a_resumed_pass_keeps_the_exact_jacobians_it_had_switched_to():
     """A pass on the secant with geodesic steps that switched to exact Jacobians, interrupted and
     resumed from its saved state, goes on with exact ones: it ends at the same point as the
