@@ -61,17 +61,18 @@ the cost of 80 at every dt.
 
 The first refit of each chain goes over the whole recording at once where the fit's Jacobian
 puts the finer grid's optimum within reach of the coarse answer (its Gauss-Newton step from
-there, on the finer grid's residuals, is ``NEAR_SE`` standard errors at most); else through
-the fit's windows of growing length, as the coarse answer can be cycles of phase off the finer
+there, on the finer grid's residuals, is ``NEAR_SE`` standard errors at most); else through the
+fit's windows of growing length, as the coarse answer can be cycles of phase off the finer
 grid's over a whole recording. On `triskele_push_release_r1` that step was 2.2 standard errors
 to 20 nodes (the move 0.23): that refit took 10 residuals and 3 Jacobians of the whole
 recording, where through the windows it took 50 residuals of windows, 11 of the whole and 3
 Jacobians (a process that ran it took 0.75 of the time), to the same values within 0.006
-standard errors. The step was 462 standard errors to dt 0.25 ms (the move 12.8): over the whole recording
-at once from there, that time refit ended after four of its Jacobians at a reduced chi-square
-of 0.930, where through the windows it reaches 0.854. Through the windows a refit holds the fit's
-Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian, each step taken
-only where it lowers the cost), so an iteration costs one rollout of the window and no tangents.
+standard errors. The step was 462 standard errors to dt 0.25 ms (the move 12.8): over the whole
+recording at once from there, that time refit ended after four of its Jacobians at a reduced
+chi-square of 0.930, where through the windows it reaches 0.854. Through the windows a refit
+holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian,
+each step taken only where it lowers the cost), so an iteration costs one rollout of the window
+and no tangents.
 Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, then takes the
 finer model's own where they stopped: the refit ends there if its Gauss-Newton decrement puts
 the parameters within ``STILL`` standard errors of the optimum, else goes on by
