@@ -61,18 +61,19 @@ the cost of 80 at every dt.
 
 The first refit of each chain goes over the whole recording at once where the fit's Jacobian
 puts the finer grid's optimum within reach of the coarse answer (its Gauss-Newton step from
-there, on the finer grid's residuals, is ``NEAR_SE`` standard errors at most); else through the
-fit's windows of growing length, as the coarse answer can be cycles of phase off the finer
-grid's over a whole recording. On `triskele_push_release_r1` that step was 2.2 standard errors
-to 20 nodes (the move 0.23): that refit took 10 residuals and 3 Jacobians of the whole
-recording, where through the windows it took 50 residuals of windows, 11 of the whole and 3
-Jacobians (a process that ran it took 0.75 of the time), to the same values within 0.006
-standard errors. The step was 462 standard errors to dt 0.25 ms (the move 12.8): over the whole
-recording at once from there, that time refit ended after four of its Jacobians at a reduced
-chi-square of 0.930, where through the windows it reaches 0.854. Through the windows a refit
-holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the coarse model's Jacobian,
-each step taken only where it lowers the cost), so an iteration costs one rollout of the window
-and no tangents.
+there, on the finer grid's residuals, is ``NEAR_SE`` standard errors at most, all unknowns
+together); else, or where that refit fails or fits more than ``WORSE`` times worse than the fit,
+through the fit's windows of growing length, as the coarse answer can be cycles of phase off the
+finer grid's over a whole recording. On `triskele_push_release_r1` that step was 2.2 standard
+errors to 20 nodes (the move 0.23): that refit took 10 residuals (that step's included) and 3
+Jacobians of the whole recording, where through the windows it took 50 residuals of windows, 11
+of the whole and 3 Jacobians (in 0.75 of the wall time, the tolerance refit included), to the
+same values within 0.006 standard errors. The step was 462 standard errors to dt 0.25 ms (the
+move 12.8): over the whole recording at once from there, that time refit ended after four of its
+Jacobians at a reduced chi-square of 0.930, where through the windows it reaches 0.854. Through
+the windows a refit holds the fit's Jacobian (a chord method: Levenberg-Marquardt with the
+coarse model's Jacobian, each step taken only where it lowers the cost), so an iteration costs
+one rollout of the window and no tangents.
 Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, then takes the
 finer model's own where they stopped: the refit ends there if its Gauss-Newton decrement puts
 the parameters within ``STILL`` standard errors of the optimum, else goes on by
@@ -158,7 +159,7 @@ STILL = 0.05  # a refit ends when its linearisation puts the parameters this man
 WORSE = 2.0  # a refit whose reduced chi-square is this many times the fit's did not find the optimum
 ORDER = {"space": 4, "time": 2}  # RK4 in space, BDF-alpha in time: a move shrinks by 2**order per halving
 ORDER_BAND = 0.5  # moves shrinking at an observed order within this of the scheme's are extrapolated
-NEAR_SE = 3.0  # a refit whose held Jacobian's first step is this many standard errors at most needs no windows
+NEAR_SE = 3.0  # a first refit whose Gauss-Newton step (fit's Jacobian, sqrt(2 decrement)) is this small needs no windows
 RIVAL_SE = 3.0  # a start this many standard errors from the answer (in a measured parameter) may lie in another basin
 CLOSE = 2.0  # optima whose losses differ by less (chi-square 4: two standard deviations) fit a recording equally well
 
@@ -330,19 +331,22 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
 
 
-def _near(fine, theta, J, huber):
+def _near(fine, theta, J):
     """(whether the refined model ``fine``'s optimum lies within the linearisation's reach of
     ``theta``, the residuals there over the whole recording): the Gauss-Newton step of the
-    Jacobian ``J`` (the fit's) from ``theta`` is ``NEAR_SE`` standard errors at most, so a refit
-    needs no windows (the fit's continuation against a loss with a minimum every cycle)."""
+    Jacobian ``J`` (the fit's) from ``theta`` on ``fine``'s residuals, sqrt(2 decrement) (all
+    unknowns together, in standard errors), is ``NEAR_SE`` at most, so a refit needs no windows
+    (the fit's continuation against a loss with a minimum every cycle). False where the rollout
+    at ``theta`` fails."""
     r = np.asarray(fine.residual(theta))
-    return bool(np.all(np.isfinite(r)) and np.sqrt(2.0 * decrement(J, r, huber)) <= NEAR_SE), r
+    return bool(np.all(np.isfinite(r)) and np.sqrt(2.0 * decrement(J, r, fine.huber)) <= NEAR_SE), r
 
 
 def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
     """(theta, residuals, iterations, Jacobians, distance) of the first `chord_refit` of ``fine`` from
-    ``tries`` ((start, window ends[, residuals at start over the whole recording]), in order) that ends within ``WORSE`` times the fit's
-    reduced chi-square ``chi2`` (``m`` degrees of freedom); raises `FitError` saying why the
+    ``tries`` ((start, window ends[, residuals at start over the whole recording]), in order)
+    that ends within ``WORSE`` times the fit's reduced chi-square ``chi2`` (``m`` degrees of
+    freedom); raises `FitError` saying why the
     last did not (a finer model that fits far worse than the coarse one: a wrong minimum)."""
     iterations = jacobians = 0
     for start, ends, *known in tries:
@@ -404,7 +408,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         # tighter tolerance) the fit's Jacobian is the model's
         tries = [(predicted, (None,))] if predicted is not None else []
         if not tries and len(windows) > 1:
-            near, r0 = _near(fine, base, J, problem.huber)
+            near, r0 = _near(fine, base, J)
             if near:
                 tries.append((base, (None,), r0))
         tries.append((base, windows))

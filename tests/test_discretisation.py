@@ -243,6 +243,24 @@ def test_a_refit_reaches_its_optimum_where_the_residuals_curvature_moves_a_held_
                 assert distance < discretisation.STILL and off < 0.05, (nodes, dt, off, distance)
 
 
+def test_a_refit_from_known_residuals_takes_them_as_its_first():
+    """`chord_refit` given the residuals at its start over the whole recording (``r0``, as
+    `refine` has them from its reach test) ends where it ends without them, one rollout fewer;
+    with windows first they are not used."""
+    coarse, fine = Curved(10, 0.1), Curved(20, 0.1)
+    theta, _ = coarse.optimum()
+    J = coarse.residual_and_jacobian(theta)[1]
+    calls = []
+    fine.residual = lambda th, t_end=None: calls.append(t_end) or Curved.residual(fine, th, t_end)
+    plain = discretisation.chord_refit(fine, theta, J, (None,))
+    n_plain = len(calls)
+    known = discretisation.chord_refit(fine, theta, J, (None,), r0=Curved.residual(fine, theta))
+    assert len(calls) - n_plain == n_plain - 1
+    np.testing.assert_array_equal(known[0], plain[0])
+    windows = discretisation.chord_refit(fine, theta, J, (0.3, 0.6, None), r0=np.zeros(3 * FRAMES))  # a wrong r0: unused
+    np.testing.assert_array_equal(discretisation.chord_refit(fine, theta, J, (0.3, 0.6, None))[0], windows[0])
+
+
 class Oscillation(Linear):
     """Whitened residuals of a decaying oscillation ``a exp(-d t) sin(w t)`` (unknowns: a, log w,
     log(d / 0.1)) whose frequency the grid moves by ``SHIFT (0.2 dt + 0.5 / nodes^2)`` (2.5 % on

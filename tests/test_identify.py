@@ -536,7 +536,7 @@ def test_geodesic_correction_is_half_the_acceleration_where_it_is_small_beside_t
     rng = np.random.default_rng(11)
     A, u = rng.standard_normal((12, 3)), rng.standard_normal(12)
     b, theta = rng.standard_normal(12), np.array([0.3, -0.2, 0.5])
-    for c, v, corrected in ((0.05, np.array([0.1, 0.05, -0.08]), True), (5.0, np.array([0.2, 0.1, -0.16]), False)):
+    for c, v, corrected in ((-0.05, np.array([0.1, 0.05, -0.08]), True), (5.0, np.array([0.2, 0.1, -0.16]), False)):
 
         def rf(x, c=c):
             return A @ x - b + 0.5 * c * float(x @ x) * u
@@ -549,8 +549,9 @@ def test_geodesic_correction_is_half_the_acceleration_where_it_is_small_beside_t
         assert (ratio <= ls.GEODESIC_RATIO) == corrected, ratio  # one case on each side of the bound
         step = ls._accelerated(rf, theta, rf(theta), J, v, damped, scale, np.inf)
         np.testing.assert_allclose(step, v + 0.5 * a if corrected else v, rtol=1e-7, atol=1e-12)
-        if corrected:  # a trust region the corrected step just leaves: the plain step
-            bound = 0.999 * np.max(np.abs(v + 0.5 * a))
+        if corrected:  # a trust region that holds the plain step but not the corrected one, longer here
+            bound = 0.5 * (np.max(np.abs(v)) + np.max(np.abs(v + 0.5 * a)))
+            assert np.max(np.abs(v)) < bound < np.max(np.abs(v + 0.5 * a))
             np.testing.assert_array_equal(ls._accelerated(rf, theta, rf(theta), J, v, damped, scale, bound), v)
 
 
