@@ -344,14 +344,14 @@ def _near(fine, theta, J):
 
 def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
     """(theta, residuals, iterations, Jacobians, distance) of the first `chord_refit` of ``fine`` from
-    ``tries`` ((start, window ends[, residuals at start over the whole recording]), in order)
-    that ends within ``WORSE`` times the fit's reduced chi-square ``chi2`` (``m`` degrees of
-    freedom); raises `FitError` saying why the
-    last did not (a finer model that fits far worse than the coarse one: a wrong minimum)."""
+    ``tries`` ((start, window ends, residuals at start over the whole recording or None), in
+    order) that ends within ``WORSE`` times the fit's reduced chi-square ``chi2`` (``m`` degrees
+    of freedom); raises `FitError` saying why the last did not (a finer model that fits far
+    worse than the coarse one: a wrong minimum)."""
     iterations = jacobians = 0
-    for start, ends, *known in tries:
+    for start, ends, r0 in tries:
         try:
-            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=known[0] if known else None)
+            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0)
         except FitError as e:
             why = f"failed ({e})"
             continue
@@ -406,12 +406,12 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         # where the fit's Jacobian puts this grid's optimum within reach (`_near`); else (or if
         # that fails) from the coarser optimum through the windows; on the fit's own grid (a
         # tighter tolerance) the fit's Jacobian is the model's
-        tries = [(predicted, (None,))] if predicted is not None else []
+        tries = [(predicted, (None,), None)] if predicted is not None else []
         if not tries and len(windows) > 1:
             near, r0 = _near(fine, base, J)
             if near:
                 tries.append((base, (None,), r0))
-        tries.append((base, windows))
+        tries.append((base, windows, None))
         try:
             th, r, iterations, jacobians, distance = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
@@ -519,7 +519,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
         return False
     held = np.asarray(problem.residual_and_jacobian(start)[1])
     # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
-    tries = [(start, (None,))] + ([(start, window_ends)] if len(window_ends) > 1 else [])
+    tries = [(start, (None,), None)] + ([(start, window_ends, None)] if len(window_ends) > 1 else [])
     try:
         th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2)
     except FitError as e:
@@ -550,7 +550,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,))], held, m, chi2)
+            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2)
         except FitError as e:
             notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False
