@@ -22,6 +22,9 @@ converged motion by 17 um on the cantilever (noise 2 um) and 4.9 nm on the Trisk
 cantilever's drawn length; the Triskele truths are within about 0.2 nm of the converged motion
 (`FINER` says how that was measured); the cantilever's extrapolation moved the filmed pose by
 up to 0.07 um from dt / 100 alone.
+
+``--draws N NAME``: NAME's truth filmed N times with other noise seeds (`noise_draws`), to
+measure how far the noise alone moves a fit's answer against the errors it reports.
 """
 
 from __future__ import annotations
@@ -375,7 +378,9 @@ def sidecar(name: str, spec: dict) -> dict:
     return side
 
 
-def generate(name: str, spec: dict, out_dir: Path) -> Path:
+def truth_motion(name: str, spec: dict, out_dir: Path):
+    """The planar motion of ``spec``'s truth (T, 3) and its sample interval: simulated with the
+    sidecar's solver settings, or on the truth's finer grid and extrapolated to dt 0."""
     side = sidecar(name, spec)
     truth = spec["truth"]
     t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
@@ -406,8 +411,12 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
             f"{name}: the truth moved by up to {np.max(np.abs(fine - twice), axis=0).tolist()} (m, m, rad) from dt {2 * dt:.3g} s"
         )
         samples, dt = fine + (fine - twice[: fine.shape[0]]) / 3.0, 2 * dt
-    path = out_dir / f"{name}.csv"
-    back = film(path, samples, dt, t_frames, spec["exposure"], truth, side)
+    return np.asarray(samples), dt
+
+
+def _film_spec(path: Path, samples, dt: float, spec: dict, side: dict):
+    t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
+    back = film(path, samples, dt, t_frames, spec["exposure"], spec["truth"], side)
     print(
         f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
         f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad"
@@ -415,12 +424,45 @@ def generate(name: str, spec: dict, out_dir: Path) -> Path:
     return path
 
 
+def generate(name: str, spec: dict, out_dir: Path) -> Path:
+    samples, dt = truth_motion(name, spec, out_dir)
+    return _film_spec(out_dir / f"{name}.csv", samples, dt, spec, sidecar(name, spec))
+
+
+def noise_draws(name: str, spec: dict, out_dir: Path, draws: int, first_seed: int) -> list[Path]:
+    """``name``'s truth filmed ``draws`` times, the noise and missing frames drawn with seeds
+    ``first_seed``, ``first_seed + 1``, ... (each in its sidecar): ``<name>_draw_<k>.csv``. A
+    fit of each says how far the noise alone moves the answer, against its reported errors."""
+    samples, dt = truth_motion(name, spec, out_dir)
+    out = []
+    for k in range(draws):
+        drawn = dict(spec, truth=dict(spec["truth"], seed=first_seed + k))
+        drawn["description"] = f"{spec['description']} Noise draw {k} (seed {first_seed + k})."
+        out.append(_film_spec(out_dir / f"{name}_draw_{k:02d}.csv", samples, dt, drawn, sidecar(name, drawn)))
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     everything = [*RECORDINGS, *INDEPENDENT]
     p.add_argument("names", nargs="*", help=f"recordings to generate (default: all of {', '.join(everything)})")
     p.add_argument("--out", default=str(ROOT), help="output folder (default: experiments_data/)")
+    p.add_argument(
+        "--draws",
+        type=int,
+        default=0,
+        help="film each named recording's truth this many times with new noise (NAME_draw_K.csv) instead",
+    )
+    p.add_argument("--first-seed", type=int, default=5000, help="the first draw's noise seed (default 5000)")
     args = p.parse_args(argv)
+    if args.draws:
+        if args.draws < 0:
+            p.error("--draws must be positive")
+        if not args.names or any(n not in RECORDINGS for n in args.names):
+            p.error(f"--draws: name recordings of {', '.join(RECORDINGS)}")
+        for name in args.names:
+            noise_draws(name, RECORDINGS[name], Path(args.out), args.draws, args.first_seed)
+        return
     for name in args.names or everything:
         if name in INDEPENDENT:
             generate_independent(name, INDEPENDENT[name], Path(args.out))

@@ -40,6 +40,31 @@ def test_own_grid_recordings_are_what_the_model_films_today(name, tmp_path):
     assert np.all(np.abs(again.pose - shipped.pose) <= 0.1 * noise), np.max(np.abs(again.pose - shipped.pose), axis=0)
 
 
+def test_noise_draws_film_the_same_motion_with_new_noise(tmp_path):
+    """`generate.py --draws`: each draw is the shipped recording's motion with noise and missing
+    frames drawn from its own seed. On the frames a draw shares with the shipped recording the
+    difference is two independent noises: per column a standard deviation of sqrt(2) times the
+    stated noise (within 20 %, about 4 standard errors of the estimate over 200 frames) and a mean
+    within 4 of its standard errors of zero."""
+    gen = recording_generator()
+    name = "cantilever_release"
+    shipped = load_recording(DATA / f"{name}.csv")
+    draws = [load_recording(p, require_sidecar=True) for p in gen.noise_draws(name, gen.RECORDINGS[name], tmp_path, 2, 7000)]
+    noise = np.array([shipped.truth["noise_position"]] * 2 + [shipped.truth["noise_angle"]])
+    for k, d in enumerate(draws):
+        assert d.truth == {**shipped.truth, "seed": 7000 + k}
+        _, i, j = np.intersect1d(np.round(d.t, 12), np.round(shipped.t, 12), return_indices=True)
+        assert i.size > 0.9 * shipped.t.size and i.size < d.t.size  # its own frames missing
+        diff = d.pose[i] - shipped.pose[j]
+        np.testing.assert_allclose(np.std(diff, axis=0), np.sqrt(2) * noise, rtol=0.2)
+        assert np.all(np.abs(np.mean(diff, axis=0)) < 4 * np.sqrt(2) * noise / np.sqrt(i.size))
+    assert not np.array_equal(draws[0].pose[:10], draws[1].pose[:10])
+    for bad in (["--draws", "-1", name], ["--draws", "1", "cantilever_independent"], ["--draws", "1"]):
+        with pytest.raises(SystemExit) as e:
+            gen.main([*bad, "--out", str(tmp_path)])
+        assert e.value.code == 2
+
+
 def _write(tmp_path, text, side=GOOD_SIDE, name="rec"):
     p = tmp_path / f"{name}.csv"
     p.write_text(text)
