@@ -446,7 +446,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     everything = [*RECORDINGS, *INDEPENDENT]
     p.add_argument("names", nargs="*", help=f"recordings to generate (default: all of {', '.join(everything)})")
-    p.add_argument("--out", default=str(ROOT), help="output folder (default: experiments_data/)")
+    p.add_argument("--out", help="output folder (default: experiments_data/; --draws needs one)")
     p.add_argument(
         "--draws",
         type=int,
@@ -460,14 +460,17 @@ def main(argv=None):
             p.error("--draws must be positive")
         if not args.names or any(n not in RECORDINGS for n in args.names):
             p.error(f"--draws: name recordings of {', '.join(RECORDINGS)}")
+        if args.out is None:
+            p.error("--draws: give --out (a folder beside the shipped recordings)")
         for name in args.names:
             noise_draws(name, RECORDINGS[name], Path(args.out), args.draws, args.first_seed)
         return
+    out = ROOT if args.out is None else Path(args.out)
     for name in args.names or everything:
         if name in INDEPENDENT:
-            generate_independent(name, INDEPENDENT[name], Path(args.out))
+            generate_independent(name, INDEPENDENT[name], out)
         else:
-            generate(name, RECORDINGS[name], Path(args.out))
+            generate(name, RECORDINGS[name], out)
 
 
 if __name__ == "__main__":

@@ -59,9 +59,15 @@ def test_noise_draws_film_the_same_motion_with_new_noise(tmp_path):
         np.testing.assert_allclose(np.std(diff, axis=0), np.sqrt(2) * noise, rtol=0.2)
         assert np.all(np.abs(np.mean(diff, axis=0)) < 4 * np.sqrt(2) * noise / np.sqrt(i.size))
     assert not np.array_equal(draws[0].pose[:10], draws[1].pose[:10])
-    for bad in (["--draws", "-1", name], ["--draws", "1", "cantilever_independent"], ["--draws", "1"]):
+    out = ["--out", str(tmp_path)]
+    for bad in (
+        ["--draws", "-1", name, *out],
+        ["--draws", "1", "cantilever_independent", *out],
+        ["--draws", "1", *out],
+        ["--draws", "1", name],
+    ):
         with pytest.raises(SystemExit) as e:
-            gen.main([*bad, "--out", str(tmp_path)])
+            gen.main(bad)
         assert e.value.code == 2
 
 
