@@ -272,6 +272,11 @@ INDEPENDENT = {
 }
 
 
+def frame_times(spec: dict) -> np.ndarray:
+    """The times of every frame of ``spec``'s film (before any goes missing)."""
+    return np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
+
+
 def film(path: Path, samples, dt: float, t_frames, exposure: float, truth: dict, side: dict):
     """Film the planar motion ``samples`` (T, 3), taken every ``dt`` s, with the camera model at
     ``t_frames`` and ``truth``'s frame, delay, noise and missing frames (seeded), write it to
@@ -320,7 +325,7 @@ def generate_independent(name: str, spec: dict, out_dir: Path) -> Path:
     recording and its sidecar (which points at the scene file; nothing of pcrjax's dynamics used)."""
     truth, grid = spec["truth"], spec["grid"]
     scene = pcrjax.load_scene(ROOT / spec["scene"])
-    t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
+    t_frames = frame_times(spec)
     span = spec["seconds"] + truth["time_offset"] + spec["exposure"] + 2 * grid["sample_dt"]
     tips, nfev = [], 0
     for nodes in grid["nodes"]:
@@ -383,7 +388,7 @@ def truth_motion(name: str, spec: dict, out_dir: Path):
     sidecar's solver settings, or on the truth's finer grid and extrapolated to dt 0."""
     side = sidecar(name, spec)
     truth = spec["truth"]
-    t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
+    t_frames = frame_times(spec)
     rec = Recording(
         path=out_dir / f"{name}.csv",
         t=t_frames,
@@ -415,8 +420,7 @@ def truth_motion(name: str, spec: dict, out_dir: Path):
 
 
 def _film_spec(path: Path, samples, dt: float, spec: dict, side: dict):
-    t_frames = np.arange(int(spec["seconds"] * spec["frame_rate"]) + 1) / spec["frame_rate"]
-    back = film(path, samples, dt, t_frames, spec["exposure"], spec["truth"], side)
+    back = film(path, samples, dt, frame_times(spec), spec["exposure"], spec["truth"], side)
     print(
         f"{path}: {back.frames} frames ({100 * back.missing_fraction():.1f} % missing), motion "
         f"{np.ptp(back.pose[:, 0]) * 1e6:.3g} x {np.ptp(back.pose[:, 1]) * 1e6:.3g} um, {np.ptp(back.pose[:, 2]) * 1e6:.3g} urad"
