@@ -36,6 +36,8 @@ class Result:
     refinements: list = dataclasses.field(default_factory=list)
     # name -> the loss's profile along each measured value at the fit's grid (`profile.report`)
     profiles: dict = dataclasses.field(default_factory=dict)
+    # the loss's rise one standard error along its least determined direction (`valley.check`)
+    valley: dict = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)

@@ -162,7 +162,7 @@ def test_a_fit_whose_profile_walks_into_a_lower_minimum_moves_there(monkeypatch)
     for start, moved in ((-1.0, True), (1.0, False)):
         th, J, r = _fit(rf, rj, np.array([start, start]))
         assert np.sign(th[0]) == start  # the well it started in
-        result, theta, _ = fit_module._profiled(pb, th, J, r, summary(pb, th, J, r, 0, True, [], []), 30, None)
+        result, theta, _, _ = fit_module._profiled(pb, th, J, r, summary(pb, th, J, r, 0, True, [], []), 30, None)
         assert abs(theta[0] - 1.0) < 0.2 and abs(result.values["a"] - theta[0]) < 1e-12
         assert ("moved there" in result.message) == moved, result.message
         assert result.profiles["a"]["drop"] < 0.5
