@@ -23,21 +23,28 @@ import numpy as np
 # the optimum: the width the loss gives that direction is at most half (or at least twice) its
 # standard error.
 FACTOR = 4.0
+# A smallest eigenvalue of the scaled J^T J below this fraction of the largest: no curvature at all
+# (the standard errors are unbounded), no direction to step along.
+SINGULAR = 1e-14
 # Unknowns named in a report: those at least this fraction of the direction's largest component
 # (in standard errors).
 SHARE = 0.5
 
 
-def weakest_direction(J, chi2: float) -> np.ndarray:
-    """The step one standard error along the least determined combination of the unknowns:
+def weakest_direction(J, chi2: float) -> tuple[np.ndarray, bool]:
+    """(the step one standard error along the least determined combination of the unknowns:
     ``v`` with ``v^T J^T J v = chi2`` along the eigenvector of the smallest eigenvalue of
-    ``J^T J`` with its columns scaled to unit norm, its largest component positive."""
+    ``J^T J`` with its columns scaled to unit norm, its largest component positive; whether the
+    recording determines it: where that eigenvalue is numerically zero ``v`` is the eigenvector
+    itself, as there is no standard error to step)."""
     A = J.T @ J
     d = 1.0 / np.sqrt(np.maximum(np.diag(A), 1e-300))
     lam, vecs = np.linalg.eigh(d[:, None] * A * d[None, :])
     u = d * vecs[:, 0]
     u = u if u[np.argmax(np.abs(u))] > 0 else -u
-    return u * math.sqrt(chi2 / max(float(u @ A @ u), 1e-300))
+    if not lam[0] > SINGULAR * lam[-1]:
+        return u, False
+    return u * math.sqrt(chi2 / float(u @ A @ u)), True
 
 
 def rise_ratio(rf, theta, r, v, chi2: float) -> float:
@@ -56,17 +63,22 @@ def rise_ratio(rf, theta, r, v, chi2: float) -> float:
 
 def check(rf, theta, J, r, chi2: float, labels, se) -> dict:
     """The weakest direction's ``direction`` (label -> component in standard errors ``se``, for
-    the unknowns at least `SHARE` of its largest), its ``rise`` (`rise_ratio`) and a ``note`` ('' where
-    the rise is within a factor `FACTOR` of the quadratic one)."""
+    the unknowns at least `SHARE` of its largest; relative to the largest where the recording
+    does not determine it), its ``rise`` (`rise_ratio`; None where not measured) and a ``note``
+    ('' where the rise is within a factor `FACTOR` of the quadratic one)."""
     theta = np.asarray(theta, float)
-    v = weakest_direction(np.asarray(J), chi2)
-    rise = rise_ratio(rf, theta, np.asarray(r), v, chi2)
+    v, determined = weakest_direction(np.asarray(J), chi2)
+    rise = rise_ratio(rf, theta, np.asarray(r), v, chi2) if determined else math.nan
     comp = v / np.where(np.asarray(se) > 0, se, np.inf)
+    if not determined:  # no standard error to measure it in: its shape only
+        comp = comp / np.max(np.abs(comp))
     big = np.abs(comp) >= SHARE * np.max(np.abs(comp))
     direction = {lab: round(float(c), 3) for lab, c, b in zip(labels, comp, big, strict=True) if b}
     named = ", ".join(f"{c:+.2g} {lab}" for lab, c in direction.items())
     note = ""
-    if not math.isfinite(rise):
+    if not determined:
+        note = f"the recording does not determine the combination ({named}) of the unknowns: its standard errors are unbounded"
+    elif not math.isfinite(rise):
         note = f"the loss one standard error along the least determined combination ({named}) could not be simulated"
     elif rise > FACTOR:
         note = (

@@ -52,7 +52,8 @@ def test_the_rise_at_a_pinch_is_the_closed_form_and_says_the_errors_overstate(se
     rf, rj = _pinch(c, y)
     th, J, r = _fit(rf, rj, [q + 0.1, 0.05])
     chi2 = float(r @ r) / (T.size - 2)
-    v = weakest_direction(J, chi2)
+    v, determined = weakest_direction(J, chi2)
+    assert determined
     assert abs(float(v @ J.T @ J @ v) - chi2) < 1e-9 * chi2
     a, b = J @ v, v[1] ** 2 * G / SIGMA
     exact = (a @ a + 2 * r @ b + b @ b) / (a @ a)
@@ -99,3 +100,20 @@ def test_a_quadratic_loss_rises_as_its_standard_errors_say():
     chi2 = float(r @ r) / (T.size - 2)
     found = check(rf, theta, A, r, chi2, ["b", "m"], standard_errors_theta(A, chi2))
     assert abs(found["rise"] - 1.0) < 1e-9 and found["note"] == ""
+
+
+def test_a_combination_the_recording_does_not_see_is_named_without_a_simulation():
+    """Two unknowns that enter only as their sum: the difference has no curvature at all, so no
+    step is simulated along it (no residual is evaluated) and the note names both as undetermined."""
+    y = np.linspace(0.0, 1.0, 20)
+    calls = []
+
+    def rf(th):
+        calls.append(th)
+        return th[0] + th[1] - y
+
+    J = np.ones((y.size, 2))
+    theta = np.full(2, 0.25)
+    found = check(rf, theta, J, rf(theta), 1.0, ["x0", "x1"], np.ones(2))
+    assert len(calls) == 1 and found["rise"] is None
+    assert "does not determine" in found["note"] and set(found["direction"]) == {"x0", "x1"}
