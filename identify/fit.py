@@ -120,7 +120,8 @@ def modal_start(
 # FINAL_FTOL / residuals): 0.5 (delta / SE)^2 is what a parameter delta off the optimum adds to
 # a loss whitened by the noise, so the parameters then lie within about 0.07 SE of its optimum.
 # Over the ten shipped recordings, against a stop at 0.045 SE: one iteration fewer on four of
-# them (a whole-recording Jacobian each), the values within 0.08 SE.
+# them (a whole-recording Jacobian each), the values within 0.08 SE; paired whole-process fits of
+# `triskele_push_release_r1` took 0.91 of the wall time.
 FINAL_FTOL = 5e-3
 # A window's optimum is only the next window's start, which moves by more than a window's
 # standard error, so each window stops within a third of its SE (decrement below 1/18 of the
