@@ -80,16 +80,11 @@ def check(rf, theta, J, r, chi2: float, labels, se) -> dict:
         note = f"the recording does not determine the combination ({named}) of the unknowns: its standard errors are unbounded"
     elif not math.isfinite(rise):
         note = f"the loss one standard error along the least determined combination ({named}) could not be simulated"
-    elif rise > FACTOR:
+    elif not 1.0 / FACTOR <= rise <= FACTOR:
+        steep = rise > FACTOR
         note = (
-            f"one standard error along the least determined combination ({named}), the loss rises {rise:.3g} times "
-            "as much as the standard errors assume: those values' standard errors overstate their uncertainty "
-            "(--profile measures it)"
-        )
-    elif rise < 1.0 / FACTOR:
-        note = (
-            f"one standard error along the least determined combination ({named}), the loss rises only {rise:.3g} times "
-            "as much as the standard errors assume: those values' standard errors understate their uncertainty "
-            "(--profile measures it)"
+            f"one standard error along the least determined combination ({named}), the loss rises {'' if steep else 'only '}"
+            f"{rise:.3g} times as much as the standard errors assume: those values' standard errors "
+            f"{'overstate' if steep else 'understate'} their uncertainty (--profile measures it)"
         )
     return dict(direction=direction, rise=None if not math.isfinite(rise) else float(rise), note=note)
