@@ -71,3 +71,35 @@ def test_legs_tangents_equal_forward_mode_ad(name):
     np.testing.assert_allclose(
         np.asarray(tips), np.asarray(rows(xl))[:, -18:], rtol=0, atol=1e-13 * np.abs(np.asarray(tips)).max()
     )
+
+
+def _euler_scene():
+    return pcrjax.with_solver(rod_scene(nodes=12, dt=1e-3, integrator="euler"), segments=2)
+
+
+@pytest.mark.parametrize("name", [*_scenes(), "euler, two equal segments"])
+def test_every_nodes_tangent_from_the_jacobians_integration_equals_forward_mode_ad(name):
+    """`Problem.jacobian_and_legs` keeps every node's and stage's tangent of the legs' Jacobian
+    integration; `assembly.legs_tangent` turns them into the derivative of the legs (junctions,
+    tips, nodes, stages) along a change of all the unknowns, which a time step's gradient uses
+    instead of a second pass along the legs. Against `jax.jvp` of the legs themselves, on every
+    layout above (coloured seeds shared between segments included) and on an Euler grid."""
+    from pcrjax.robots import assembly
+
+    scene = _euler_scene() if name.startswith("euler") else _scenes()[name]
+    prob, x = _problem(scene)
+    x = x + 1e-3 * jnp.cos(jnp.arange(x.size))  # off the solution
+    dx = jnp.asarray(np.random.default_rng(2).standard_normal(x.size))
+    J, legs_jacobian = jax.jit(prob.jacobian_and_legs)(x)
+    got = assembly.legs_tangent(prob.layout, prob.P, legs_jacobian, dx)
+    _, ref = jax.jit(lambda z, t: jax.jvp(lambda w: prob.legs(prob.split(w)[1], return_stages=True), (z,), (t,)))(x, dx)
+    for part, g, r in zip(("junctions", "tips", "nodes", "stages"), got, ref, strict=True):
+        r = np.asarray(r)
+        assert np.shape(g) == r.shape, (name, part)
+        if r.size == 0:  # no junctions: one segment
+            continue
+        scale = np.abs(r).max(axis=tuple(range(r.ndim - 1)), keepdims=True) + 1e-300  # per state component
+        assert np.abs(np.asarray(g) - r).max() / scale.max() < 1e-11, (name, part)
+        assert (np.abs(np.asarray(g) - r) / scale).max() < 1e-9, (name, part)
+    J0 = np.asarray(jax.jit(prob.jacobian)(x))
+    np.testing.assert_allclose(np.asarray(J), J0, rtol=0, atol=1e-13 * np.abs(J0).max())

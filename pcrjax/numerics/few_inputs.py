@@ -33,7 +33,7 @@ def _inexact(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
-def _linearizing(tangents) -> bool:
+def linearizing(tangents) -> bool:
     """Whether the rule is being linearised for a transpose (`jax.grad`, `jax.vjp`,
     `jax.linearize`): its tangents are then partial-evaluation tracers of unknown values. A
     plain `jax.jvp` (`jax.jacfwd`, a batch of directions) passes values or other tracers, and
@@ -82,7 +82,7 @@ def _with_forward_rule(fn, max_columns: int):
         live_primals = tuple(primals[i] for i in live)
         live_tangents = tuple(tangents[i] for i in live)
         columns = sum(int(np.size(p)) for p in live_primals)
-        if columns == 0 or columns > max_columns or not _linearizing(live_tangents):
+        if columns == 0 or columns > max_columns or not linearizing(live_tangents):
             return jax.jvp(with_live, live_primals, live_tangents)
 
         shapes = [jnp.shape(p) for p in live_primals]

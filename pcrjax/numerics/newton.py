@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
 from . import results
+from .few_inputs import linearizing
 
 
 class NewtonSettings(eqx.Module):
@@ -364,7 +365,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     )
 
 
-def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, homotopy=None, has_aux=False):
+def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, homotopy=None, has_aux=False, aux_tangents=None):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
     ``jac_fn(x)`` gives the exact Jacobian of ``fn`` at ``x``; it serves the forward Newton and,
@@ -385,7 +386,14 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
     ``has_aux``: ``fn`` (and the homotopy's ``h``) return ``(residual, aux)``, and the solve
     returns ``(x, Jacobian, Stats, aux)`` with the aux of the returned x: what a caller would
     otherwise compute again at the root (the legs' nodes) comes from the last evaluation. It
-    carries no derivatives; `recorded` gives it those of the function that made it.
+    carries no derivatives (`recorded` gives it those of the function that made it) unless
+    ``aux_tangents`` is given: ``(jac_aux_fn, aux_tangent)``, where ``jac_aux_fn(x)`` returns
+    the exact Jacobian and whatever ``aux_tangent(that, dx)`` needs to give the aux's derivative
+    along a change ``dx`` of the unknowns (``aux_tangent`` is closed over no arrays). The aux's
+    derivative is then the tangent of ``fn``'s aux along the inputs (from the pass that gives
+    the implicit function theorem its right-hand side) plus ``aux_tangent`` along the root's
+    tangent, so no second pass through ``fn`` is made: along the legs, the Jacobian's own
+    integration gives every node's tangent (`_implicit_with_aux`).
 
     Under `jax.vmap` the solve runs as one batched loop (`_batched`) that evaluates Jacobians
     only when some member needs one; each member's iterates are those of its own solve.
@@ -404,6 +412,12 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
         j_conv, j_consts = _at_one(hj_conv), gj_consts
     fixed = jax.lax.stop_gradient
     x, jac, stats, aux = _batched(g, g_jac, settings, has_aux)(fixed(g_consts), fixed(gj_consts), fixed(jac0), fixed(stages))
+    if aux_tangents is not None:
+        if homotopy is not None or not has_aux:
+            raise ValueError("aux_tangents needs has_aux and no homotopy")
+        ja_conv, ja_consts = jax.closure_convert(aux_tangents[0], x0)
+        x, aux = _implicit_with_aux(f_conv, ja_conv, aux_tangents[1], x, aux, f_consts, ja_consts)
+        return x, jac, stats, aux
     x = _implicit(_residual_of(f_conv) if has_aux else f_conv, j_conv, x, f_consts, j_consts)
     return (x, jac, stats, aux) if has_aux else (x, jac, stats)
 
@@ -489,3 +503,30 @@ def _implicit_jvp(f_conv, j_conv, primals, tangents):
     J = Jacobian.factor(j_conv(x, *j_consts))
     _, rhs = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
     return x, -J.solve(rhs)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _implicit_with_aux(f_conv, ja_conv, aux_tangent, x, aux, f_consts, ja_consts):
+    """``(x, aux)``: a root of ``f_conv(., *f_consts)``'s residual and that function's aux there,
+    with `_implicit`'s tangent for ``x`` and the aux's own (`solve`'s ``aux_tangents``)."""
+    return x, aux
+
+
+@_implicit_with_aux.defjvp
+def _implicit_with_aux_jvp(f_conv, ja_conv, aux_tangent, primals, tangents):
+    x, aux, f_consts, ja_consts = primals
+    df_consts = tangents[2]
+    x, aux = _implicit_with_aux(f_conv, ja_conv, aux_tangent, x, aux, f_consts, ja_consts)  # second order
+    if linearizing(jax.tree.leaves(df_consts)):
+        # Reverse mode would keep every step's aux Jacobian for the transpose: the aux's tangent
+        # comes instead from a second pass through fn along the root's tangent, as `recorded`.
+        J = Jacobian.factor(ja_conv(x, *ja_consts)[0])
+        _, rhs = jax.jvp(lambda c: f_conv(x, *c)[0], (list(f_consts),), (list(df_consts),))
+        dx = -J.solve(rhs)
+        _, (_, daux) = jax.jvp(lambda z, c: f_conv(z, *c), (x, list(f_consts)), (dx, list(df_consts)))
+        return (x, aux), (dx, daux)
+    Jm, aux_jac = ja_conv(x, *ja_consts)
+    _, (rhs, daux_inputs) = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
+    dx = -Jacobian.factor(Jm).solve(rhs)
+    daux = jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
+    return (x, aux), (dx, daux)

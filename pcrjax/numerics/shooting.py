@@ -159,11 +159,12 @@ def shoot(layout: Layout, x, base_state, R_ref, rods: Rods, sc: Scales, return_s
     return (out[0], junctions) + ((out[2],) if return_stages else ())
 
 
-def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: Scales):
+def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: Scales, everywhere=False):
     """Tip states (n, 18) and directional derivatives (n, C, rows) of each leg's [junction
     residuals, tip state (18)] along the C rows of ``seeds`` (C, size, a NumPy array: which
     segments each seed moves is static), by forward sensitivities integrated with the rods
-    (`integrate_tangents`, which carries the states themselves too)."""
+    (`integrate_tangents`, which carries the states themselves too). With ``everywhere``, also
+    the nodes' and stages' derivatives along the seeds, (n, C, N+1, dim) and (n, C, N, 3|0, dim)."""
     seeds = np.asarray(seeds)
 
     def lin(fn, *args):  # fn's value at x and its derivatives along the seeds, per leg
@@ -174,18 +175,28 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: 
 
     y0, Y0 = lin(lambda z, b: _starts(b[None], z[None], sc)[0], base_state)
     if layout.segments == 1:
-        y_last, Y_last, _, _ = integrate_tangents(y0, Y0, rods)
-        return y_last[:, :18], Y_last[..., :18]
+        out = integrate_tangents(y0, Y0, rods, everywhere=everywhere)
+        tips, cols = out[0][:, :18], out[1][..., :18]
+        return (tips, cols, out[5]) if everywhere else (tips, cols)
     restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
     RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
     directions = tuple(tuple(int(c) for c in np.flatnonzero(seeds[:, cl].any(axis=1))) for cl in layout.segment_columns)
-    y_last, Y_last, arr, arr_t = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT, directions)
+    out = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT, directions, everywhere)
+    y_last, Y_last, arr, arr_t = out[:4]
 
     def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)
         jvp = lambda at, rt: jax.jvp(lambda aa, rr: junction_residuals(layout, aa, rr, sc), (a, r), (at, rt))[1]  # noqa: E731
         return jax.vmap(jvp)(jnp.swapaxes(a_t, 0, 1), jnp.swapaxes(r_t, 0, 1))
 
-    return y_last[:, :18], jnp.concatenate([jax.vmap(junction_tangents)(arr, arr_t, restarts, RT), Y_last[..., :18]], axis=2)
+    cols = jnp.concatenate([jax.vmap(junction_tangents)(arr, arr_t, restarts, RT), Y_last[..., :18]], axis=2)
+    return (y_last[:, :18], cols, out[5]) if everywhere else (y_last[:, :18], cols)
+
+
+def node_segments(layout: Layout):
+    """The segment (NumPy, static) of each node (N+1,) and of each node step (N,): node j belongs
+    to the segment whose start it is or follows; the last node to the last segment."""
+    k = np.searchsorted(np.asarray(layout.starts, dtype=int), np.arange(layout.nodes + 1), side="right")
+    return k, k[:-1]
 
 
 def unknowns_from_nodes(layout: Layout, nodes, R_ref, sc: Scales):

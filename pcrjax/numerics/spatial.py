@@ -177,7 +177,7 @@ def _segment_starts(first, restarts, M: int):
 
 def _per_segment(a, M: int):
     """(n M, ...) -> (n, M, ...)."""
-    return a.reshape((-1, M) + a.shape[1:])
+    return a.reshape((a.shape[0] // M, M) + a.shape[1:])
 
 
 def integrate(y0, rods: Rods, segment_starts=None, restarts=None, return_stages=False, all_nodes=True):
@@ -255,7 +255,9 @@ def _legs(rods: Rods, idx) -> Rods:
     )
 
 
-def integrate_tangents(y0, Y0, rods: Rods, segment_starts=None, restarts=None, restart_tangents=None, directions=None):
+def integrate_tangents(
+    y0, Y0, rods: Rods, segment_starts=None, restarts=None, restart_tangents=None, directions=None, everywhere=False
+):
     r"""Integrate n legs and C tangent directions each together (forward sensitivities).
 
     ``Y0`` (n, C, dim): tangents of the start states; ``restart_tangents`` (n, M-1, C, dim): of the
@@ -279,35 +281,43 @@ def integrate_tangents(y0, Y0, rods: Rods, segment_starts=None, restarts=None, r
 
     **Returns:** ``(y_N, Y_N, arrivals, arrival tangents)``: the last states (n, dim) and their
     tangents (n, C, dim), and the states (n, M-1, dim) and tangents (n, M-1, C, dim) arriving at
-    each segment start (or None).
+    each segment start (or None). With ``everywhere``, also ``((nodes, stages), (node tangents,
+    stage tangents))``: `integrate`'s nodes (n, N+1, dim) and stages (n, N, 3|0, dim), and their
+    tangents (n, C, N+1, dim) and (n, C, N, 3|0, dim).
     """
     n, C, dim = Y0.shape
     M = _equal_segments(rods, segment_starts)
     if M:
         directions = [tuple(range(C)) if directions is None or not directions[k] else tuple(directions[k]) for k in range(M)]
         if n * sum(map(len, directions)) <= COMPLEX_STEP_LEGS:
-            return _complex_side_by_side(y0, Y0, rods, M, restarts, restart_tangents, directions)
+            return _complex_side_by_side(y0, Y0, rods, M, restarts, restart_tangents, directions, everywhere)
     elif n * C <= COMPLEX_STEP_LEGS:
-        return _complex_step(y0, Y0, rods, segment_starts, restarts, restart_tangents)
-    return _tangents_by_jvp(y0, Y0, rods, segment_starts, restarts, restart_tangents)
+        return _complex_step(y0, Y0, rods, segment_starts, restarts, restart_tangents, everywhere)
+    return _tangents_by_jvp(y0, Y0, rods, segment_starts, restarts, restart_tangents, everywhere)
 
 
-def _complex_step(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents):
+def _no_stages(nodes):
+    """The (..., N, 0, dim) stages of an Euler grid, for ``nodes`` (..., N+1, dim)."""
+    return jnp.zeros(nodes.shape[:-2] + (nodes.shape[-2] - 1, 0, nodes.shape[-1]), nodes.dtype)
+
+
+def _complex_step(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents, everywhere=False):
     """`integrate_tangents` by the complex step in one scan (one segment, or unequal ones)."""
     n, C, dim = Y0.shape
     lift = lambda y, Y: (y[:, None] + 1j * _STEP * Y).reshape((n * C,) + y.shape[1:])  # noqa: E731
+    split = lambda z: (z.reshape((n, C) + z.shape[1:])[:, 0].real, z.reshape((n, C) + z.shape[1:]).imag / _STEP)  # noqa: E731
     legs = _legs(rods, np.repeat(np.arange(n), C))
-    if not segment_starts:
-        nodes, _ = integrate(lift(y0, Y0), legs, all_nodes=False)
-        z = nodes[:, -1].reshape(n, C, dim)
-        return z[:, 0].real, z.imag / _STEP, None, None
-    zr = lift(restarts, jnp.swapaxes(restart_tangents, 1, 2))  # (n C, M-1, dim)
-    nodes, arr = integrate(lift(y0, Y0), legs, segment_starts, zr, all_nodes=False)
-    z, arr = nodes[:, -1].reshape(n, C, dim), arr.reshape((n, C) + arr.shape[1:])
-    return z[:, 0].real, z.imag / _STEP, arr[:, 0].real, jnp.swapaxes(arr.imag / _STEP, 1, 2)
+    zr = lift(restarts, jnp.swapaxes(restart_tangents, 1, 2)) if segment_starts else None  # (n C, M-1, dim)
+    out = integrate(lift(y0, Y0), legs, segment_starts, zr, return_stages=everywhere, all_nodes=everywhere)
+    (y_end, Y_end), arr = split(out[0][:, -1]), out[1]
+    arr = (split(arr)[0], jnp.swapaxes(split(arr)[1], 1, 2)) if segment_starts else (None, None)
+    if not everywhere:
+        return y_end, Y_end, *arr
+    (nodes, T), (stages, Ts) = split(out[0]), split(out[2])
+    return y_end, Y_end, *arr, (nodes, stages), (T, Ts)
 
 
-def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions):
+def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere=False):
     """`integrate_tangents` by the complex step for M equal segments side by side: segment k of
     each leg carries only the directions ``directions[k]``, each as a complex leg of N / M steps."""
     n, C, dim = Y0.shape
@@ -316,14 +326,28 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
     leg = np.asarray([i * M + k for i in range(n) for k in range(M) for _ in directions[k]])
     direction = np.asarray([c for _ in range(n) for k in range(M) for c in directions[k]])
     first = np.searchsorted(leg, np.arange(n * M))  # each segment's first complex leg: its states
-    nodes, _ = integrate(starts[leg] + 1j * _STEP * tangents[leg, direction], _legs(seg, leg), all_nodes=False)
-    z = nodes[:, -1]
-    y_end = _per_segment(z[first].real, M)
-    Y_end = _per_segment(jnp.zeros((n * M, C, dim), y0.dtype).at[leg, direction].set(z.imag / _STEP), M)
-    return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1]
+    out = integrate(
+        starts[leg] + 1j * _STEP * tangents[leg, direction], _legs(seg, leg), return_stages=everywhere, all_nodes=everywhere
+    )
+
+    def spread(z):  # complex legs' (L, ...) -> states (n, M, L, ...) and tangents (n, M, C, L, ...)
+        Z = jnp.zeros((n * M, C) + z.shape[1:], y0.dtype).at[leg, direction].set(z.imag / _STEP)
+        return _per_segment(z[first].real, M), _per_segment(Z, M)
+
+    y_end, Y_end = spread(out[0][:, -1])
+    if not everywhere:
+        return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1]
+    (nodes, T), (stages, Ts) = spread(out[0]), spread(out[2])
+    # node j of segment k is node k L + j; each segment's end is the next one's arrival
+    N = M * stages.shape[2]
+    nodes = jnp.concatenate([nodes[:, :, :-1].reshape(n, N, dim), y_end[:, -1:]], axis=1)
+    T = jnp.concatenate([jnp.swapaxes(T[:, :, :, :-1], 1, 2).reshape(n, C, N, dim), Y_end[:, -1, :, None]], axis=2)
+    stages = stages.reshape((n, N) + stages.shape[3:])
+    Ts = jnp.swapaxes(Ts, 1, 2).reshape((n, C, N) + Ts.shape[4:])
+    return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1], (nodes, stages), (T, Ts)
 
 
-def _tangents_by_jvp(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents):
+def _tangents_by_jvp(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents, everywhere=False):
     """`integrate_tangents` by a batched `jax.jvp` of the right-hand side at every stage."""
 
     def one(y, Y, h, kk):
@@ -336,25 +360,45 @@ def _tangents_by_jvp(y0, Y0, rods: Rods, segment_starts, restarts, restart_tange
         seg = _side_by_side(rods, M)
         F = _per_leg(one, n * M)
         starts = _segment_starts((y0, Y0), (restarts, restart_tangents), M)
-        (y_end, Y_end), _ = _scan(
-            lambda st, h: F(st[0], st[1], h, seg.k), starts, seg, None, None, False, False, _on_rotations_with_tangents
+        (y_end, Y_end), outs = _scan(
+            lambda st, h: F(st[0], st[1], h, seg.k), starts, seg, None, None, everywhere, everywhere, _on_rotations_with_tangents
         )
         y_end, Y_end = _per_segment(y_end, M), _per_segment(Y_end, M)
-        return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1]
+        ends = (y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1])
+        return ends + _everywhere(outs, ends[0], ends[1], M) if everywhere else ends
     F = _per_leg(one, y0.shape[0])
     state = (y0, Y0)
-    collect = bool(segment_starts)
+    collect = bool(segment_starts) or everywhere
     (y_last, Y_last), outs = _scan(
         lambda st, h: F(st[0], st[1], h, rods.k),
         state,
         rods,
         segment_starts,
         (restarts, restart_tangents),
-        False,
+        everywhere,
         collect,
         _on_rotations_with_tangents,
     )
-    if not segment_starts:
-        return y_last, Y_last, None, None
-    idx = np.asarray(segment_starts)
-    return y_last, Y_last, jnp.swapaxes(outs[1][0][idx], 0, 1), jnp.swapaxes(outs[1][1][idx], 0, 1)
+    if segment_starts:
+        idx = np.asarray(segment_starts)
+        ends = (y_last, Y_last, jnp.swapaxes(outs[1][0][idx], 0, 1), jnp.swapaxes(outs[1][1][idx], 0, 1))
+    else:
+        ends = (y_last, Y_last, None, None)
+    return ends + _everywhere(outs, y_last, Y_last, 1) if everywhere else ends
+
+
+def _everywhere(outs, y_last, Y_last, M: int):
+    """``((nodes, stages), (node tangents, stage tangents))`` of n legs from `_scan`'s outputs
+    for a (state, tangents) pair, run as n M legs of N / M steps (M equal segments side by side;
+    M = 1: one scan along the whole grid, restarts included)."""
+    n, C, dim = Y_last.shape
+    (y_in, Y_in), stages = outs[0], (outs[2] if len(outs) > 2 else None)
+    nodes = jnp.concatenate([_per_segment(jnp.swapaxes(y_in, 0, 1), M).reshape(n, -1, dim), y_last[:, None]], axis=1)
+    T = _per_segment(jnp.moveaxis(Y_in, 0, 2), M)  # (n, M, C, L, dim)
+    T = jnp.concatenate([jnp.swapaxes(T, 1, 2).reshape(n, C, -1, dim), Y_last[:, :, None]], axis=2)
+    if stages is None:  # Euler
+        return (nodes, _no_stages(nodes)), (T, _no_stages(T))
+    y_s, Y_s = stages  # (L, n M, 3, dim), (L, n M, 3, C, dim)
+    y_s = _per_segment(jnp.swapaxes(y_s, 0, 1), M).reshape((n, -1) + y_s.shape[2:])
+    Y_s = _per_segment(jnp.transpose(Y_s, (1, 3, 0, 2, 4)), M)  # (n, M, C, L, 3, dim)
+    return (nodes, y_s), (T, jnp.swapaxes(Y_s, 1, 2).reshape((n, C, -1) + Y_s.shape[4:]))

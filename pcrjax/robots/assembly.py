@@ -24,7 +24,15 @@ import numpy as np
 
 from ..numerics import bdf_alpha, newton
 from ..numerics.rod_history import RodHistory
-from ..numerics.shooting import Layout, make_scales, segment_rotations, shoot, shoot_jacobian, unknowns_from_nodes
+from ..numerics.shooting import (
+    Layout,
+    make_scales,
+    node_segments,
+    segment_rotations,
+    shoot,
+    shoot_jacobian,
+    unknowns_from_nodes,
+)
 from ..numerics.spatial import Rods
 from ..physics.rod import coefficients
 
@@ -98,16 +106,24 @@ class Problem:
         derivatives are those of `legs` (`newton.recorded`)."""
         return newton.recorded(lambda z: self.legs(z, return_stages=True), xl, value)
 
-    def leg_jacobians(self, xl):
+    def leg_jacobians(self, xl, everywhere=False):
         """(tips (n, 18), (n, S-6+18, S)): the legs' tip states and each leg's Jacobian of
         [junctions, tip state] with respect to its own unknowns, by forward sensitivities along
         coloured seeds (columns sharing a colour never share a nonzero row), decompressed by the
-        sparsity mask."""
+        sparsity mask. With ``everywhere``, also the nodes' and stages' derivatives along the
+        seeds (`shooting.shoot_jacobian`)."""
         colours, mask = self.layout.colouring(extra_rows=TIP)
         _, colours = np.unique(colours, return_inverse=True)
-        seeds = np.eye(int(colours.max()) + 1)[colours].T  # (C, S)
-        tips, cols = shoot_jacobian(self.layout, xl, seeds, self.y0, self.leg_R_ref, self.rods, self.sc)
-        return tips, jnp.swapaxes(cols, 1, 2)[:, :, colours] * jnp.asarray(mask, cols.dtype)
+        out = shoot_jacobian(self.layout, xl, _seeds(self.layout), self.y0, self.leg_R_ref, self.rods, self.sc, everywhere)
+        return (out[0], jnp.swapaxes(out[1], 1, 2)[:, :, colours] * jnp.asarray(mask, out[1].dtype)) + out[2:]
+
+    def jacobian_and_legs(self, x):
+        """`jacobian`, and what `legs_tangent` needs to give the derivative of `legs` (with every
+        node and stage) along a change of the unknowns: the same leg integrations, keeping every
+        node's tangent."""
+        xp, xl = self.split(x)
+        tips, Jl, node_tangents = self.leg_jacobians(xl, everywhere=True)
+        return self.assemble(xp, tips, Jl), (Jl, node_tangents)
 
     # -- end ----------------------------------------------------------------------------------
     def pose(self, xp):
@@ -164,6 +180,34 @@ class Problem:
 
     def unknowns(self, pose_unknowns, nodes):
         return unknowns(self.layout, self.sc, pose_unknowns, nodes)
+
+
+def _seeds(lay: Layout):
+    """(C, S) coloured seeds of one leg's unknowns (`Layout.colouring`)."""
+    _, colours = np.unique(lay.colouring(extra_rows=TIP)[0], return_inverse=True)
+    return np.eye(int(colours.max()) + 1)[colours].T
+
+
+def legs_tangent(lay: Layout, P: int, legs_jacobian, dx):
+    """The derivative of `Problem.legs` (junctions, tips, nodes, stages) along ``dx``, a change of
+    the whole unknown vector (pose P first), from `Problem.jacobian_and_legs`'s ``legs_jacobian``.
+
+    A node of segment k depends on that segment's start unknowns only, and no two of those
+    share a seed's colour, so a seed's tangent there is the derivative along the one unknown
+    of its colour in segment k: each seed's coefficient per segment is that unknown's change."""
+    Jl, (T, Ts) = legs_jacobian
+    n, C = T.shape[:2]
+    dxl = dx[P:].reshape(n, -1)
+    rows = jnp.einsum("nrs,ns->nr", Jl, dxl)
+    in_segment = np.zeros((lay.segments, lay.size))
+    for k, cols in enumerate(lay.segment_columns):
+        in_segment[k, cols] = 1.0
+    W = _seeds(lay)[:, None, :] * in_segment[None]  # (C, M, S)
+    coef = jnp.einsum("cks,ns->nck", jnp.asarray(W, dx.dtype), dxl)
+    node_k, step_k = node_segments(lay)
+    nodes = jnp.einsum("ncjd,ncj->njd", T, coef[:, :, node_k])
+    stages = jnp.einsum("ncjsd,ncj->njsd", Ts, coef[:, :, step_k])
+    return rows[:, : lay.size - 6], rows[:, lay.size - 6 :], nodes, stages
 
 
 def unknowns(lay: Layout, sc, pose_unknowns, nodes):

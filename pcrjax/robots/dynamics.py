@@ -13,6 +13,8 @@ each step), it is retried from the last step's solution with a fresh Jacobian.
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -116,6 +118,16 @@ class _Forward:
         xp, xl = self.prob.split(x)
         return self.prob, self.prob.pose(xp), xl, self.a
 
+    def aux_tangents(self):
+        """`newton.solve`'s ``aux_tangents``: the legs' nodes at the root get their derivatives
+        from the Jacobian's own leg integrations."""
+        prob = self.prob
+        return prob.jacobian_and_legs, partial(assembly.legs_tangent, prob.layout, prob.P)
+
+    def legs(self, prob, xl, legs_at_root):
+        """(tips, nodes, stages) of the legs at the root, with their derivatives."""
+        return legs_at_root[1:]
+
     def relative_unknowns(self, prob, p, R, nodes, a):
         """This step's and the last step's unknowns, relative to this step's pose and rotations."""
         end, planar = self.scene.end, self.scene.effects.planar
@@ -139,6 +151,12 @@ class _Inverse(_Forward):
         prob = self.prob.problem(xa)
         return prob, prob.pose(self.prob.xp), xl, self.prob.actuators(xa)
 
+    def aux_tangents(self):
+        return None
+
+    def legs(self, prob, xl, legs_at_root):
+        return prob.recorded_legs(xl, legs_at_root)[1:]
+
     def relative_unknowns(self, prob, p, R, nodes, a):
         """Leg unknowns as in `_Forward`; actuators relative to this step's values."""
         xa_prev = (self.state.a1 - a) / self.prob.sc.length
@@ -157,10 +175,16 @@ def step(scene, state: StepState, t, path=None):
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
     start = newton.with_restart(guess, x1, ~state.has_jac)
     x, jac, stats, legs_at_root = newton.solve(
-        lambda z: form.prob.residual(z, True), form.prob.jacobian, state.jac, s.newton, start, has_aux=True
+        lambda z: form.prob.residual(z, True),
+        form.prob.jacobian,
+        state.jac,
+        s.newton,
+        start,
+        has_aux=True,
+        aux_tangents=form.aux_tangents(),
     )
     prob, body, xl, a = form.solution(x)
-    _, tips, nodes, stages = prob.recorded_legs(xl, legs_at_root)
+    tips, nodes, stages = form.legs(prob, xl, legs_at_root)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co_next, h, k, scene.effects, nd, st, zp, co)  # noqa: E731
     z, history = jax.vmap(after)(state.history, prob.k, nodes, stages, state.z_prev)
     memory, end_energy = scene.end.advance(prob.cfg, state.memory, body, tips, co_next)
