@@ -416,7 +416,7 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
         if homotopy is not None or not has_aux:
             raise ValueError("aux_tangents needs has_aux and no homotopy")
         ja_conv, ja_consts = jax.closure_convert(aux_tangents[0], x0)
-        x, aux = _implicit_with_aux(f_conv, ja_conv, aux_tangents[1], x, aux, f_consts, ja_consts)
+        x, aux = _implicit_with_aux(f_conv, j_conv, ja_conv, aux_tangents[1], x, aux, f_consts, j_consts, ja_consts)
         return x, jac, stats, aux
     x = _implicit(_residual_of(f_conv) if has_aux else f_conv, j_conv, x, f_consts, j_consts)
     return (x, jac, stats, aux) if has_aux else (x, jac, stats)
@@ -505,22 +505,22 @@ def _implicit_jvp(f_conv, j_conv, primals, tangents):
     return x, -J.solve(rhs)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def _implicit_with_aux(f_conv, ja_conv, aux_tangent, x, aux, f_consts, ja_consts):
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
+def _implicit_with_aux(f_conv, j_conv, ja_conv, aux_tangent, x, aux, f_consts, j_consts, ja_consts):
     """``(x, aux)``: a root of ``f_conv(., *f_consts)``'s residual and that function's aux there,
     with `_implicit`'s tangent for ``x`` and the aux's own (`solve`'s ``aux_tangents``)."""
     return x, aux
 
 
 @_implicit_with_aux.defjvp
-def _implicit_with_aux_jvp(f_conv, ja_conv, aux_tangent, primals, tangents):
-    x, aux, f_consts, ja_consts = primals
+def _implicit_with_aux_jvp(f_conv, j_conv, ja_conv, aux_tangent, primals, tangents):
+    x, aux, f_consts, j_consts, ja_consts = primals
     df_consts = tangents[2]
-    x, aux = _implicit_with_aux(f_conv, ja_conv, aux_tangent, x, aux, f_consts, ja_consts)  # second order
+    x, aux = _implicit_with_aux(f_conv, j_conv, ja_conv, aux_tangent, *primals)  # second order
     if linearizing(jax.tree.leaves(df_consts)):
         # Reverse mode would keep every step's aux Jacobian for the transpose: the aux's tangent
         # comes instead from a second pass through fn along the root's tangent, as `recorded`.
-        J = Jacobian.factor(ja_conv(x, *ja_consts)[0])
+        J = Jacobian.factor(j_conv(x, *j_consts))
         _, rhs = jax.jvp(lambda c: f_conv(x, *c)[0], (list(f_consts),), (list(df_consts),))
         dx = -J.solve(rhs)
         _, (_, daux) = jax.jvp(lambda z, c: f_conv(z, *c), (x, list(f_consts)), (dx, list(df_consts)))

@@ -196,7 +196,7 @@ def legs_tangent(lay: Layout, P: int, legs_jacobian, dx):
     share a seed's colour, so a seed's tangent there is the derivative along the one unknown
     of its colour in segment k: each seed's coefficient per segment is that unknown's change."""
     Jl, (T, Ts) = legs_jacobian
-    n, C = T.shape[:2]
+    n = T.shape[0]
     dxl = dx[P:].reshape(n, -1)
     rows = jnp.einsum("nrs,ns->nr", Jl, dxl)
     in_segment = np.zeros((lay.segments, lay.size))
