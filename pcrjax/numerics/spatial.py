@@ -337,14 +337,20 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
     y_end, Y_end = spread(out[0][:, -1])
     if not everywhere:
         return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1]
-    (nodes, T), (stages, Ts) = spread(out[0]), spread(out[2])
-    # node j of segment k is node k L + j; each segment's end is the next one's arrival
-    N = M * stages.shape[2]
-    nodes = jnp.concatenate([nodes[:, :, :-1].reshape(n, N, dim), y_end[:, -1:]], axis=1)
-    T = jnp.concatenate([jnp.swapaxes(T[:, :, :, :-1], 1, 2).reshape(n, C, N, dim), Y_end[:, -1, :, None]], axis=2)
-    stages = stages.reshape((n, N) + stages.shape[3:])
-    Ts = jnp.swapaxes(Ts, 1, 2).reshape((n, C, N) + Ts.shape[4:])
+    (nodes, T), (stages, Ts) = spread(out[0]), _join_segments(*spread(out[2]))
+    # each segment's end is the next one's arrival: its entering nodes, then the last end
+    nodes, T = _join_segments(nodes[:, :, :-1], T[:, :, :, :-1])
+    nodes, T = jnp.concatenate([nodes, y_end[:, -1:]], axis=1), jnp.concatenate([T, Y_end[:, -1, :, None]], axis=2)
     return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1], (nodes, stages), (T, Ts)
+
+
+def _join_segments(states, tangents):
+    """States (n, M, L, ...) and tangents (n, M, C, L, ...) of M consecutive segments of L node
+    steps as those of the whole grid: (n, M L, ...) and (n, C, M L, ...) (node j of segment k is
+    node k L + j)."""
+    n, M, L = states.shape[:3]
+    C = tangents.shape[2]
+    return states.reshape((n, M * L) + states.shape[3:]), jnp.swapaxes(tangents, 1, 2).reshape((n, C, M * L) + tangents.shape[4:])
 
 
 def _tangents_by_jvp(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents, everywhere=False):
@@ -391,14 +397,11 @@ def _everywhere(outs, y_last, Y_last, M: int):
     """``((nodes, stages), (node tangents, stage tangents))`` of n legs from `_scan`'s outputs
     for a (state, tangents) pair, run as n M legs of N / M steps (M equal segments side by side;
     M = 1: one scan along the whole grid, restarts included)."""
-    n, C, dim = Y_last.shape
     (y_in, Y_in), stages = outs[0], (outs[2] if len(outs) > 2 else None)
-    nodes = jnp.concatenate([_per_segment(jnp.swapaxes(y_in, 0, 1), M).reshape(n, -1, dim), y_last[:, None]], axis=1)
-    T = _per_segment(jnp.moveaxis(Y_in, 0, 2), M)  # (n, M, C, L, dim)
-    T = jnp.concatenate([jnp.swapaxes(T, 1, 2).reshape(n, C, -1, dim), Y_last[:, :, None]], axis=2)
+    nodes, T = _join_segments(_per_segment(jnp.swapaxes(y_in, 0, 1), M), _per_segment(jnp.moveaxis(Y_in, 0, 2), M))
+    nodes, T = jnp.concatenate([nodes, y_last[:, None]], axis=1), jnp.concatenate([T, Y_last[:, :, None]], axis=2)
     if stages is None:  # Euler
         return (nodes, _no_stages(nodes)), (T, _no_stages(T))
     y_s, Y_s = stages  # (L, n M, 3, dim), (L, n M, 3, C, dim)
-    y_s = _per_segment(jnp.swapaxes(y_s, 0, 1), M).reshape((n, -1) + y_s.shape[2:])
-    Y_s = _per_segment(jnp.transpose(Y_s, (1, 3, 0, 2, 4)), M)  # (n, M, C, L, 3, dim)
-    return (nodes, y_s), (T, jnp.swapaxes(Y_s, 1, 2).reshape((n, C, -1) + Y_s.shape[4:]))
+    stages, Ts = _join_segments(_per_segment(jnp.swapaxes(y_s, 0, 1), M), _per_segment(jnp.transpose(Y_s, (1, 3, 0, 2, 4)), M))
+    return (nodes, stages), (T, Ts)
