@@ -181,7 +181,7 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: 
     restarts, RT = lin(lambda z, R: restart_states(layout, z, R, sc), R_ref)
     RT = jnp.swapaxes(RT, 1, 2)  # (n, M-1, C, dim)
     directions = tuple(tuple(int(c) for c in np.flatnonzero(seeds[:, cl].any(axis=1))) for cl in layout.segment_columns)
-    out = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT, directions, everywhere)
+    out = integrate_tangents(y0, Y0, rods, layout.starts, restarts, RT, directions, everywhere, _translations(layout, seeds))
     y_last, Y_last, arr, arr_t = out[:4]
 
     def junction_tangents(a, a_t, r, r_t):  # one leg: (C, (M-1) d)
@@ -190,6 +190,16 @@ def shoot_jacobian(layout: Layout, x, seeds, base_state, R_ref, rods: Rods, sc: 
 
     cols = jnp.concatenate([jax.vmap(junction_tangents)(arr, arr_t, restarts, RT), Y_last[..., :18]], axis=2)
     return (y_last[:, :18], cols, out[5]) if everywhere else (y_last[:, :18], cols)
+
+
+def _translations(layout: Layout, seeds):
+    """Per segment, the seeds (rows of ``seeds``) that move its start's position alone (the first
+    3 of a restart's unknowns, `restart_states`); none for segment 0, whose start is the base."""
+    out = [()]
+    for cl in layout.segment_columns[1:]:
+        moved = seeds[:, cl] != 0
+        out.append(tuple(int(c) for c in np.flatnonzero(moved.any(axis=1) & ~moved[:, 3:].any(axis=1))))
+    return tuple(out)
 
 
 def node_segments(layout: Layout):

@@ -256,13 +256,26 @@ def _legs(rods: Rods, idx) -> Rods:
 
 
 def integrate_tangents(
-    y0, Y0, rods: Rods, segment_starts=None, restarts=None, restart_tangents=None, directions=None, everywhere=False
+    y0,
+    Y0,
+    rods: Rods,
+    segment_starts=None,
+    restarts=None,
+    restart_tangents=None,
+    directions=None,
+    everywhere=False,
+    translations=None,
 ):
     r"""Integrate n legs and C tangent directions each together (forward sensitivities).
 
     ``Y0`` (n, C, dim): tangents of the start states; ``restart_tangents`` (n, M-1, C, dim): of the
     segment restarts. ``directions``: for equal segments, a static tuple per segment of the
     directions whose tangents may be nonzero there (None: all); the others' come out zero.
+    ``translations``: for equal segments, a static tuple per segment of those directions whose
+    start tangent there moves the position y[0:3] alone. The right-hand side and the rotation
+    step never read the position, so along such a direction every node of the segment moves
+    as its start does: the tangent is carried, not integrated (on Till's cantilever, 3 of the
+    24 complex legs of a step's Jacobian).
 
     **By the complex step** where that makes at most ``COMPLEX_STEP_LEGS`` legs: each direction
     is integrated as a leg of its own from the complex start $y_0 + i h Y_0$. The right-hand
@@ -289,8 +302,12 @@ def integrate_tangents(
     M = _equal_segments(rods, segment_starts)
     if M:
         directions = [tuple(range(C)) if directions is None or not directions[k] else tuple(directions[k]) for k in range(M)]
-        if n * sum(map(len, directions)) <= COMPLEX_STEP_LEGS:
-            return _complex_side_by_side(y0, Y0, rods, M, restarts, restart_tangents, directions, everywhere)
+        carried = [tuple(c for c in directions[k] if translations is not None and c in translations[k]) for k in range(M)]
+        # a segment keeps one integrated direction at least: its complex legs carry its states too
+        carried = [t if len(t) < len(d) else () for t, d in zip(carried, directions, strict=True)]
+        integrated = [tuple(c for c in d if c not in t) for d, t in zip(directions, carried, strict=True)]
+        if n * sum(map(len, integrated)) <= COMPLEX_STEP_LEGS:
+            return _complex_side_by_side(y0, Y0, rods, M, restarts, restart_tangents, integrated, everywhere, carried)
     elif n * C <= COMPLEX_STEP_LEGS:
         return _complex_step(y0, Y0, rods, segment_starts, restarts, restart_tangents, everywhere)
     return _tangents_by_jvp(y0, Y0, rods, segment_starts, restarts, restart_tangents, everywhere)
@@ -317,9 +334,11 @@ def _complex_step(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents
     return y_end, Y_end, *arr, (nodes, stages), (T, Ts)
 
 
-def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere=False):
+def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere=False, carried=None):
     """`integrate_tangents` by the complex step for M equal segments side by side: segment k of
-    each leg carries only the directions ``directions[k]``, each as a complex leg of N / M steps."""
+    each leg integrates only the directions ``directions[k]``, each as a complex leg of N / M
+    steps, and holds the start tangents of the directions ``carried[k]`` (translations) at
+    every node."""
     n, C, dim = Y0.shape
     seg = _side_by_side(rods, M)
     starts, tangents = _segment_starts((y0, Y0), (restarts, restart_tangents), M)  # (n M, dim), (n M, C, dim)
@@ -330,8 +349,16 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
         starts[leg] + 1j * _STEP * tangents[leg, direction], _legs(seg, leg), return_stages=everywhere, all_nodes=everywhere
     )
 
+    held = [(i * M + k, c) for i in range(n) for k in range(M) for c in (carried[k] if carried else ())]
+    held_leg, held_direction = (np.asarray(a, dtype=int) for a in zip(*held)) if held else (None, None)
+
     def spread(z):  # complex legs' (L, ...) -> states (n, M, L, ...) and tangents (n, M, C, L, ...)
         Z = jnp.zeros((n * M, C) + z.shape[1:], y0.dtype).at[leg, direction].set(z.imag / _STEP)
+        if held:
+            t = tangents[held_leg, held_direction]  # (K, dim), the same at every node and stage
+            Z = Z.at[held_leg, held_direction].set(
+                jnp.broadcast_to(t.reshape((t.shape[0],) + (1,) * (z.ndim - 2) + (dim,)), (t.shape[0],) + z.shape[1:])
+            )
         return _per_segment(z[first].real, M), _per_segment(Z, M)
 
     y_end, Y_end = spread(out[0][:, -1])

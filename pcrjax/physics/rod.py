@@ -225,7 +225,9 @@ def _rotate_cross_plus(R, a, b, c):
 
 
 def rhs(y, h, k: RodCoefficients, effects: Effects):
-    """$dy/ds$ of the Cosserat rod at one point, given its history ``h`` (ignored in statics)."""
+    """$dy/ds$ of the Cosserat rod at one point, given its history ``h`` (ignored in statics). It
+    does not depend on the position y[0:3] (`spatial.integrate_tangents` carries a tangent that
+    moves the position alone without integrating it)."""
     v, u = strains(y, h, k, effects)
     if effects.inertia:
         p, R, n, m, q, w = unpack(y)
