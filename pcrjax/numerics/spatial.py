@@ -308,7 +308,8 @@ def integrate_tangents(
         integrated = [tuple(c for c in d if c not in t) for d, t in zip(directions, carried, strict=True)]
         if n * sum(map(len, integrated)) <= COMPLEX_STEP_LEGS:
             return _complex_side_by_side(y0, Y0, rods, M, restarts, restart_tangents, integrated, everywhere, carried)
-    elif n * C <= COMPLEX_STEP_LEGS:
+        return _jvp_side_by_side(y0, Y0, rods, M, restarts, restart_tangents, integrated, everywhere, carried)
+    if n * C <= COMPLEX_STEP_LEGS:
         return _complex_step(y0, Y0, rods, segment_starts, restarts, restart_tangents, everywhere)
     return _tangents_by_jvp(y0, Y0, rods, segment_starts, restarts, restart_tangents, everywhere)
 
@@ -349,17 +350,9 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
         starts[leg] + 1j * _STEP * tangents[leg, direction], _legs(seg, leg), return_stages=everywhere, all_nodes=everywhere
     )
 
-    held = [(i * M + k, c) for i in range(n) for k in range(M) for c in (carried[k] if carried else ())]
-    held_leg, held_direction = (np.asarray(a, dtype=int) for a in zip(*held)) if held else (None, None)
-
     def spread(z):  # complex legs' (L, ...) -> states (n, M, L, ...) and tangents (n, M, C, L, ...)
         Z = jnp.zeros((n * M, C) + z.shape[1:], y0.dtype).at[leg, direction].set(z.imag / _STEP)
-        if held:
-            t = tangents[held_leg, held_direction]  # (K, dim), the same at every node and stage
-            Z = Z.at[held_leg, held_direction].set(
-                jnp.broadcast_to(t.reshape((t.shape[0],) + (1,) * (z.ndim - 2) + (dim,)), (t.shape[0],) + z.shape[1:])
-            )
-        return _per_segment(z[first].real, M), _per_segment(Z, M)
+        return _per_segment(z[first].real, M), _per_segment(_hold(Z, tangents, n, carried), M)
 
     y_end, Y_end = spread(out[0][:, -1])
     if not everywhere:
@@ -371,6 +364,20 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
     return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1], (nodes, stages), (T, Ts)
 
 
+def _hold(Z, tangents, n: int, carried):
+    """Tangents ``Z`` (n M, C, ...) of n legs' M equal segments side by side with, along each
+    segment k's ``carried[k]`` directions (translations), its start tangent (``tangents``
+    (n M, C, dim)) at every node and stage."""
+    M = len(carried) if carried else 1
+    held = [(i * M + k, c) for i in range(n) for k in range(M) for c in (carried[k] if carried else ())]
+    if not held:
+        return Z
+    leg, direction = (np.asarray(a, dtype=int) for a in zip(*held))
+    t = tangents[leg, direction]  # (K, dim)
+    shape = (t.shape[0],) + Z.shape[2:]
+    return Z.at[leg, direction].set(jnp.broadcast_to(t.reshape((t.shape[0],) + (1,) * (Z.ndim - 3) + t.shape[1:]), shape))
+
+
 def _join_segments(states, tangents):
     """States (n, M, L, ...) and tangents (n, M, C, L, ...) of M consecutive segments of L node
     steps as those of the whole grid: (n, M L, ...) and (n, C, M L, ...) (node j of segment k is
@@ -380,26 +387,60 @@ def _join_segments(states, tangents):
     return states.reshape((n, M * L) + states.shape[3:]), jnp.swapaxes(tangents, 1, 2).reshape((n, C, M * L) + tangents.shape[4:])
 
 
-def _tangents_by_jvp(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents, everywhere=False):
-    """`integrate_tangents` by a batched `jax.jvp` of the right-hand side at every stage."""
+def _rhs_and_tangents(effects):
+    """The right-hand side at ``y`` and its derivatives along the rows of ``Y`` (one batched `jax.jvp`)."""
 
     def one(y, Y, h, kk):
-        g = lambda z: rhs(z, h, kk, rods.effects)  # noqa: E731
+        g = lambda z: rhs(z, h, kk, effects)  # noqa: E731
         return jax.vmap(lambda t: jax.jvp(g, (y,), (t,)), out_axes=(None, 0))(Y)
 
-    M = _equal_segments(rods, segment_starts)
-    if M:
-        n = y0.shape[0]
-        seg = _side_by_side(rods, M)
-        F = _per_leg(one, n * M)
-        starts = _segment_starts((y0, Y0), (restarts, restart_tangents), M)
-        (y_end, Y_end), outs = _scan(
-            lambda st, h: F(st[0], st[1], h, seg.k), starts, seg, None, None, everywhere, everywhere, _on_rotations_with_tangents
-        )
-        y_end, Y_end = _per_segment(y_end, M), _per_segment(Y_end, M)
-        ends = (y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1])
-        return ends + _everywhere(outs, ends[0], ends[1], M) if everywhere else ends
-    F = _per_leg(one, y0.shape[0])
+    return one
+
+
+def _jvp_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere=False, carried=None):
+    """`integrate_tangents` by a batched `jax.jvp` for M equal segments side by side: segment k
+    of each leg integrates its ``directions[k]`` alone, as many per segment as the largest
+    (the others padded with a zero tangent), and holds the start tangents of ``carried[k]``.
+    With the colouring of `shooting.Layout`, a segment's own seeds are about half of all."""
+    n, C, dim = Y0.shape
+    seg = _side_by_side(rods, M)
+    F = _per_leg(_rhs_and_tangents(rods.effects), n * M)
+    starts, tangents = _segment_starts((y0, Y0), (restarts, restart_tangents), M)  # (n M, dim), (n M, C, dim)
+    D = max(map(len, directions))
+    own = np.asarray([list(directions[k]) + [C] * (D - len(directions[k])) for _ in range(n) for k in range(M)])  # (n M, D)
+    rows = np.arange(n * M)[:, None]
+    padded = jnp.concatenate([tangents, jnp.zeros_like(tangents[:, :1])], axis=1)
+
+    def widen(Y, leg_axis, dir_axis):  # tangents along each segment's own D directions -> along all C
+        Ym = jnp.moveaxis(Y, (leg_axis, dir_axis), (0, 1))
+        W = jnp.zeros((n * M, C + 1) + Ym.shape[2:], Y.dtype).at[rows, own].set(Ym)[:, :C]
+        return jnp.moveaxis(_hold(W, tangents, n, carried), (0, 1), (leg_axis, dir_axis))
+
+    (y_end, Y_end), outs = _scan(
+        lambda st, h: F(st[0], st[1], h, seg.k),
+        (starts, padded[rows, own]),
+        seg,
+        None,
+        None,
+        everywhere,
+        everywhere,
+        _on_rotations_with_tangents,
+    )
+    y_end, Y_end = _per_segment(y_end, M), _per_segment(widen(Y_end, 0, 1), M)
+    ends = (y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1])
+    if not everywhere:
+        return ends
+    (y_in, Y_in), rest = outs[0], outs[2:]
+    if rest:  # RK4's stages (L, n M, 3, D, dim)
+        rest = ((rest[0][0], widen(rest[0][1], 1, 3)),)
+    outs = ((y_in, widen(Y_in, 1, 2)), outs[1]) + rest
+    return ends + _everywhere(outs, ends[0], ends[1], M)
+
+
+def _tangents_by_jvp(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents, everywhere=False):
+    """`integrate_tangents` by a batched `jax.jvp` of the right-hand side at every stage, in one
+    scan (one segment, or unequal ones)."""
+    F = _per_leg(_rhs_and_tangents(rods.effects), y0.shape[0])
     state = (y0, Y0)
     collect = bool(segment_starts) or everywhere
     (y_last, Y_last), outs = _scan(
