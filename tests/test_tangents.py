@@ -2,7 +2,9 @@
 of the plain integration (`jax.jacfwd` of the legs' junctions and tips): equal to round-off by
 the complex step (one segment and several legs; equal segments side by side, each carrying only
 its own directions; unequal segments in one scan; quadratic drag, whose |q| must stay analytic)
-and by the batched `jax.jvp` that takes over beyond `COMPLEX_STEP_LEGS` directions."""
+and by the batched `jax.jvp` that takes over beyond `COMPLEX_STEP_LEGS` directions (equal
+segments again each integrating their own seeds alone). A segment start's position seeds are
+carried, not integrated, on both paths."""
 
 import jax
 import jax.numpy as jnp

@@ -368,8 +368,8 @@ def _hold(Z, tangents, n: int, carried):
     """Tangents ``Z`` (n M, C, ...) of n legs' M equal segments side by side with, along each
     segment k's ``carried[k]`` directions (translations), its start tangent (``tangents``
     (n M, C, dim)) at every node and stage."""
-    M = len(carried) if carried else 1
-    held = [(i * M + k, c) for i in range(n) for k in range(M) for c in (carried[k] if carried else ())]
+    M = len(carried or ())
+    held = [(i * M + k, c) for i in range(n) for k in range(M) for c in carried[k]]
     if not held:
         return Z
     leg, direction = (np.asarray(a, dtype=int) for a in zip(*held))
