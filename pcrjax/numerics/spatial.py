@@ -335,12 +335,12 @@ def _complex_step(y0, Y0, rods: Rods, segment_starts, restarts, restart_tangents
     return y_end, Y_end, *arr, (nodes, stages), (T, Ts)
 
 
-def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere=False, carried=None):
+def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere, carried):
     """`integrate_tangents` by the complex step for M equal segments side by side: segment k of
     each leg integrates only the directions ``directions[k]``, each as a complex leg of N / M
     steps, and holds the start tangents of the directions ``carried[k]`` (translations) at
     every node."""
-    n, C, dim = Y0.shape
+    n = Y0.shape[0]
     seg = _side_by_side(rods, M)
     starts, tangents = _segment_starts((y0, Y0), (restarts, restart_tangents), M)  # (n M, dim), (n M, C, dim)
     leg = np.asarray([i * M + k for i in range(n) for k in range(M) for _ in directions[k]])
@@ -351,8 +351,7 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
     )
 
     def spread(z):  # complex legs' (L, ...) -> states (n, M, L, ...) and tangents (n, M, C, L, ...)
-        Z = jnp.zeros((n * M, C) + z.shape[1:], y0.dtype).at[leg, direction].set(z.imag / _STEP)
-        return _per_segment(z[first].real, M), _per_segment(_hold(Z, tangents, n, carried), M)
+        return _per_segment(z[first].real, M), _per_segment(_all_directions(z.imag / _STEP, leg, direction, tangents, carried), M)
 
     y_end, Y_end = spread(out[0][:, -1])
     if not everywhere:
@@ -364,18 +363,24 @@ def _complex_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents
     return y_end[:, -1], Y_end[:, -1], y_end[:, :-1], Y_end[:, :-1], (nodes, stages), (T, Ts)
 
 
-def _hold(Z, tangents, n: int, carried):
-    """Tangents ``Z`` (n M, C, ...) of n legs' M equal segments side by side with, along each
-    segment k's ``carried[k]`` directions (translations), its start tangent (``tangents``
-    (n M, C, dim)) at every node and stage."""
-    M = len(carried or ())
-    held = [(i * M + k, c) for i in range(n) for k in range(M) for c in carried[k]]
+def _all_directions(values, leg, direction, tangents, carried):
+    """Tangents (n M, C, ...) of the n M segment legs side by side along all C directions, from
+    ``values`` integrated along some of them: ``values[i]`` is leg ``leg[i]``'s tangent along
+    ``direction[i]`` (index arrays that broadcast together; direction C is padding, dropped).
+    Directions neither integrated nor ``carried`` are zero; along segment k's ``carried[k]``
+    (translations) every node and stage has the start tangent (``tangents`` (n M, C, dim))."""
+    nM, C = tangents.shape[:2]
+    rest = values.shape[np.broadcast(leg, direction).ndim :]
+    Z = jnp.zeros((nM, C + 1) + rest, values.dtype).at[leg, direction].set(values)[:, :C]
+    M = len(carried)
+    held = [(i, c) for i in range(nM) for c in carried[i % M]]
     if not held:
         return Z
     leg, direction = (np.asarray(a, dtype=int) for a in zip(*held))
-    t = tangents[leg, direction]  # (K, dim)
-    shape = (t.shape[0],) + Z.shape[2:]
-    return Z.at[leg, direction].set(jnp.broadcast_to(t.reshape((t.shape[0],) + (1,) * (Z.ndim - 3) + t.shape[1:]), shape))
+    t = tangents[leg, direction]  # (K, dim), the same at every node and stage
+    return Z.at[leg, direction].set(
+        jnp.broadcast_to(t.reshape((t.shape[0],) + (1,) * (len(rest) - 1) + t.shape[1:]), (t.shape[0],) + rest)
+    )
 
 
 def _join_segments(states, tangents):
@@ -397,12 +402,12 @@ def _rhs_and_tangents(effects):
     return one
 
 
-def _jvp_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere=False, carried=None):
+def _jvp_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, directions, everywhere, carried):
     """`integrate_tangents` by a batched `jax.jvp` for M equal segments side by side: segment k
     of each leg integrates its ``directions[k]`` alone, as many per segment as the largest
     (the others padded with a zero tangent), and holds the start tangents of ``carried[k]``.
     With the colouring of `shooting.Layout`, a segment's own seeds are about half of all."""
-    n, C, dim = Y0.shape
+    n, C = Y0.shape[:2]
     seg = _side_by_side(rods, M)
     F = _per_leg(_rhs_and_tangents(rods.effects), n * M)
     starts, tangents = _segment_starts((y0, Y0), (restarts, restart_tangents), M)  # (n M, dim), (n M, C, dim)
@@ -412,9 +417,8 @@ def _jvp_side_by_side(y0, Y0, rods: Rods, M: int, restarts, restart_tangents, di
     padded = jnp.concatenate([tangents, jnp.zeros_like(tangents[:, :1])], axis=1)
 
     def widen(Y, leg_axis, dir_axis):  # tangents along each segment's own D directions -> along all C
-        Ym = jnp.moveaxis(Y, (leg_axis, dir_axis), (0, 1))
-        W = jnp.zeros((n * M, C + 1) + Ym.shape[2:], Y.dtype).at[rows, own].set(Ym)[:, :C]
-        return jnp.moveaxis(_hold(W, tangents, n, carried), (0, 1), (leg_axis, dir_axis))
+        W = _all_directions(jnp.moveaxis(Y, (leg_axis, dir_axis), (0, 1)), rows, own, tangents, carried)
+        return jnp.moveaxis(W, (0, 1), (leg_axis, dir_axis))
 
     (y_end, Y_end), outs = _scan(
         lambda st, h: F(st[0], st[1], h, seg.k),
