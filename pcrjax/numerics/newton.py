@@ -57,11 +57,8 @@ class Jacobian(eqx.Module):
 
     @classmethod
     def factor(cls, J):
-        row = 1.0 / _power_of_two(jnp.max(jnp.abs(J), axis=1))
-        Jr = J * row[:, None]
-        col = 1.0 / _power_of_two(jnp.max(jnp.abs(Jr), axis=0))
-        lu, piv = jsl.lu_factor(Jr * col[None, :])
-        return cls(J, col[:, None] * jsl.lu_solve((lu, piv), jnp.diag(row)))
+        lu, row, col = _equilibrated_lu(J)
+        return cls(J, col[:, None] * jsl.lu_solve(lu, jnp.diag(row)))
 
     @classmethod
     def empty(cls, size, dtype=jnp.float64):
@@ -92,6 +89,24 @@ class Stats(eqx.Module):
     jacobians: jnp.ndarray
     evaluations: jnp.ndarray
     result: jnp.ndarray
+
+
+def _equilibrated_lu(J):
+    """(LU factors of ``D_r J D_c``, the row scales ``D_r``, the column scales ``D_c``): `Jacobian`'s
+    equilibration by powers of two."""
+    row = 1.0 / _power_of_two(jnp.max(jnp.abs(J), axis=1))
+    Jr = J * row[:, None]
+    col = 1.0 / _power_of_two(jnp.max(jnp.abs(Jr), axis=0))
+    return jsl.lu_factor(Jr * col[None, :]), row, col
+
+
+def solve_once(J, b):
+    """``J^{-1} b`` by the equilibrated LU factors (`Jacobian`'s round-off) without forming the
+    inverse: where one solve with the matrix is all that is needed (a tangent rule), a third of
+    the inverse's work at 75 unknowns and 7 right-hand sides. ``b``: (n,) or (n, k)."""
+    lu, row, col = _equilibrated_lu(J)
+    scale = row if b.ndim == 1 else row[:, None]
+    return (col if b.ndim == 1 else col[:, None]) * jsl.lu_solve(lu, scale * b)
 
 
 def _norm(r):
@@ -500,9 +515,8 @@ def _implicit_jvp(f_conv, j_conv, primals, tangents):
     x, f_consts, j_consts = primals
     _, df_consts, _ = tangents
     x = _implicit(f_conv, j_conv, x, f_consts, j_consts)  # differentiable again (second order)
-    J = Jacobian.factor(j_conv(x, *j_consts))
     _, rhs = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
-    return x, -J.solve(rhs)
+    return x, -solve_once(j_conv(x, *j_consts), rhs)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
@@ -520,13 +534,12 @@ def _implicit_with_aux_jvp(f_conv, j_conv, ja_conv, aux_tangent, primals, tangen
     if linearizing(jax.tree.leaves(df_consts)):
         # Reverse mode would keep every step's aux Jacobian for the transpose: the aux's tangent
         # comes instead from a second pass through fn along the root's tangent, as `recorded`.
-        J = Jacobian.factor(j_conv(x, *j_consts))
         _, rhs = jax.jvp(lambda c: f_conv(x, *c)[0], (list(f_consts),), (list(df_consts),))
-        dx = -J.solve(rhs)
+        dx = -solve_once(j_conv(x, *j_consts), rhs)
         _, (_, daux) = jax.jvp(lambda z, c: f_conv(z, *c), (x, list(f_consts)), (dx, list(df_consts)))
         return (x, aux), (dx, daux)
     Jm, aux_jac = ja_conv(x, *ja_consts)
     _, (rhs, daux_inputs) = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
-    dx = -Jacobian.factor(Jm).solve(rhs)
+    dx = -solve_once(Jm, rhs)
     daux = jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
     return (x, aux), (dx, daux)
