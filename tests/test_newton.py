@@ -161,3 +161,20 @@ def test_aux_of_the_root_is_its_functions_value_with_its_derivatives(homotopy):
         np.testing.assert_allclose(batched[i], value, rtol=1e-13)
         np.testing.assert_allclose(jax.grad(run)(params[i], starts[i]), [value * (x + p * dp), value * p * dq], rtol=1e-10)
         np.testing.assert_allclose(grads[i], [value * (x + p * dp), value * p * dq], rtol=1e-10)
+
+
+def test_solve_once_solves_a_badly_scaled_system_like_numpy():
+    """The tangent rules' solve (equilibrated LU, no inverse) against numpy's, on a matrix whose
+    rows span twelve decades (a stiff rod beside a light platform), for one and several
+    right-hand sides, and under vmap."""
+    rng = np.random.default_rng(3)
+    n = 30
+    J = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 6, size=(n, 1))
+    B = rng.normal(size=(n, 4))
+    want = np.linalg.solve(J, B)
+    got = np.asarray(newton.solve_once(jnp.asarray(J), jnp.asarray(B)))
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.max(np.abs(want)))
+    one = np.asarray(newton.solve_once(jnp.asarray(J), jnp.asarray(B[:, 0])))
+    np.testing.assert_allclose(one, want[:, 0], rtol=1e-9, atol=1e-12 * np.max(np.abs(want)))
+    mapped = np.asarray(jax.vmap(lambda b: newton.solve_once(jnp.asarray(J), b), in_axes=1, out_axes=1)(jnp.asarray(B)))
+    np.testing.assert_allclose(mapped, want, rtol=1e-9, atol=1e-12 * np.max(np.abs(want)))

@@ -101,12 +101,12 @@ def _equilibrated_lu(J):
 
 
 def solve_once(J, b):
-    """``J^{-1} b`` by the equilibrated LU factors (`Jacobian`'s round-off) without forming the
-    inverse: where one solve with the matrix is all that is needed (a tangent rule), a third of
-    the inverse's work at 75 unknowns and 7 right-hand sides. ``b``: (n,) or (n, k)."""
+    """``J^{-1} b`` (``b``: (n,) or (n, k)) by the equilibrated LU factors, with `Jacobian`'s
+    round-off but not its inverse, whose n right-hand sides cost more than the factors: for a
+    tangent rule, which solves with each step's Jacobian once."""
     lu, row, col = _equilibrated_lu(J)
-    scale = row if b.ndim == 1 else row[:, None]
-    return (col if b.ndim == 1 else col[:, None]) * jsl.lu_solve(lu, scale * b)
+    along = lambda d: d.reshape(d.shape + (1,) * (b.ndim - 1))  # noqa: E731
+    return along(col) * jsl.lu_solve(lu, along(row) * b)
 
 
 def _norm(r):
