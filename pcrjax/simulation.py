@@ -17,9 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import executables
+from . import executables, traces
 from .errors import ConvergenceError, SceneError
-from .numerics import results
+from .numerics import newton, results
 from .numerics.few_inputs import forward_for_few
 from .physics.rotations import rotation_vector
 from .robots import dynamics, inverse, statics
@@ -320,8 +320,34 @@ def _compiled_advance(scene, state, chunk: int, path=None):
     if key is None:
         return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
     if key not in _COMPILED:
-        _COMPILED[key] = _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
+        _COMPILED[key] = _kept_advance(scene, state, chunk, path)
     return _COMPILED[key]
+
+
+# A chunk's per-step outputs (`_scan_steps`'s tuple), for their structure.
+_OUTPUTS = (0, 0, 0, newton.Stats(0, 0, 0, 0, 0), 0, 0, 0)
+
+
+def _kept_advance(scene, state, chunk: int, path):
+    """``_advance``'s chunk compiled, its trace kept on disk (`traces.compiled`), so that a later
+    process skips tracing and lowering it. A kept program takes arrays: the arguments pass as
+    their leaves, and the outputs come back as the state and the per-step tuple. The plain
+    compile where a leaf is not an array."""
+    leaves, structure = jax.tree.flatten((scene, state, path))
+    if not all(isinstance(a, jax.Array | np.ndarray) for a in leaves):
+        return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
+
+    def chunk_of(leaves, i0):
+        sc, st, pa = jax.tree.unflatten(structure, leaves)
+        return jax.tree.leaves(_scan_steps(sc, st, i0, chunk, path=pa))
+
+    program = traces.compiled(chunk_of, "simulate-chunk", (str(structure), chunk), (leaves, jnp.asarray(0)))
+    out = jax.tree.structure((state, _OUTPUTS))
+
+    def run(scene, state, i0, count, path):
+        return jax.tree.unflatten(out, program(jax.tree.leaves((scene, state, path)), i0))
+
+    return run
 
 
 def _start_and_chunk(scene, path, chunk: int):

@@ -154,19 +154,35 @@ def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = ()):
         sig = _signature(args)
         with lock:
             if sig not in programs:
-                path = folder / f"{name}-{hashlib.sha256((key + sig).encode()).hexdigest()[:32]}.pkl"
-                exported = _load(path)
-                if exported is None:
-                    try:
-                        exported = export.export(jitted)(*args)
-                    except Exception:  # what export cannot hold (a host callback), or a bug the plain call reports
-                        programs[sig] = jitted
-                        return jitted(*args)
-                    _store(path, exported)
-                programs[sig] = jax.jit(exported.call)
+                programs[sig] = _kept(jitted, folder, name, key, args)
         return programs[sig](*args)
 
     return call
+
+
+def compiled(fn, name: str, closure, args, packages: tuple[ModuleType, ...] = ()):
+    """``jax.jit(fn).lower(*args).compile()`` (compiled before it is called, e.g. to time a run
+    apart from its compile), its traced program kept on disk as `jit` keeps it."""
+    jitted = jax.jit(fn)
+    folder = config.trace_cache_dir()
+    key = None if folder is None else fingerprint(name, closure, (pcrjax, *packages))
+    program = jitted if key is None else _kept(jitted, folder, name, key, args)
+    return program.lower(*args).compile()
+
+
+def _kept(jitted, folder: Path, name: str, key: str, args):
+    """``jitted``'s program for ``args``' structure, shapes and dtypes as a jitted call of its
+    export, loaded from ``folder`` or traced and stored there; ``jitted`` itself where export
+    cannot hold it (a host callback), or where tracing fails (the plain call then reports why)."""
+    path = folder / f"{name}-{hashlib.sha256((key + _signature(args)).encode()).hexdigest()[:32]}.pkl"
+    exported = _load(path)
+    if exported is None:
+        try:
+            exported = export.export(jitted)(*args)
+        except Exception:
+            return jitted
+        _store(path, exported)
+    return jax.jit(exported.call)
 
 
 def jit_over(fn, name: str, tree, closure, packages: tuple[ModuleType, ...] = ()):

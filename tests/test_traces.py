@@ -92,3 +92,36 @@ def test_a_fits_programs_are_named_by_plain_data(name):
 
     pb = Problem(load_recording(f"experiments_data/{name}.csv"), ("tau", "lengths"))
     assert traces.fingerprint("p", (pb.rec, pb.fit, pb.scene), ()) is not None
+
+
+def test_a_program_compiled_ahead_is_kept_like_a_jitted_one(folder):
+    x, n = jnp.array([0.1, 0.2, 0.3]), jnp.int32(3)
+    seen = []
+    first = traces.compiled(_program(np.array(2.0), seen), "c", (np.array(2.0),), (x, n))(x, n)
+    again = []
+    second = traces.compiled(_program(np.array(2.0), again), "c", (np.array(2.0),), (x, n))(x, n)
+    assert len(seen) == 1 and again == [] and len(list(folder.glob("c-*.pkl"))) == 1
+    plain = jax.jit(_program(2.0, []))(x, n)
+    for a, b, c in zip(first, second, plain, strict=True):
+        assert np.array_equal(a, b) and np.array_equal(a, c)
+
+
+def test_a_simulations_chunk_is_kept_and_a_later_run_skips_its_trace(folder, monkeypatch):
+    """`simulate` compiles its chunk of steps from the kept program once one is on disk (a later
+    process: the compiled chunks forgotten), to the same trajectory."""
+    from pcrjax import simulation
+
+    scene = pcrjax.load_scene("cantilever")
+    scene = pcrjax.with_solver(scene, nodes=10, duration=6 * float(scene.solver.dt))
+    traced = []
+    scan = simulation._scan_steps
+    monkeypatch.setattr(simulation, "_scan_steps", lambda *a, **k: traced.append(1) or scan(*a, **k))
+    simulation.release_compiled()
+    first = pcrjax.simulate(scene, chunk=4)
+    assert traced and len(list(folder.glob("simulate-chunk-*.pkl"))) == 1
+    traced.clear()
+    simulation.release_compiled()
+    second = pcrjax.simulate(scene, chunk=4)
+    assert traced == []
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
+        assert np.array_equal(a, b)
