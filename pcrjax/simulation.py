@@ -318,7 +318,7 @@ def _compiled_advance(scene, state, chunk: int, path=None):
     alone would compile again every time); without caching where a static leaf is unhashable."""
     key = _advance_key(scene, state, chunk, path)
     if key is None:
-        return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
+        return _kept_advance(scene, state, chunk, path)
     if key not in _COMPILED:
         _COMPILED[key] = _kept_advance(scene, state, chunk, path)
     return _COMPILED[key]

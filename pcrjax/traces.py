@@ -144,8 +144,7 @@ def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = ()):
     objects ``fn`` reads whole. The result is for calling, not for transforming (`vmap`, `grad`).
     """
     jitted = jax.jit(fn)
-    folder = config.trace_cache_dir()
-    key = None if folder is None else fingerprint(name, closure, (pcrjax, *packages))
+    folder, key = _folder_and_key(name, closure, packages)
     if key is None:
         return jitted
     programs, lock = {}, threading.Lock()
@@ -164,10 +163,16 @@ def compiled(fn, name: str, closure, args, packages: tuple[ModuleType, ...] = ()
     """``jax.jit(fn).lower(*args).compile()`` (compiled before it is called, e.g. to time a run
     apart from its compile), its traced program kept on disk as `jit` keeps it."""
     jitted = jax.jit(fn)
-    folder = config.trace_cache_dir()
-    key = None if folder is None else fingerprint(name, closure, (pcrjax, *packages))
+    folder, key = _folder_and_key(name, closure, packages)
     program = jitted if key is None else _kept(jitted, folder, name, key, args)
     return program.lower(*args).compile()
+
+
+def _folder_and_key(name: str, closure, packages: tuple[ModuleType, ...]):
+    """(`config.trace_cache_dir`, the `fingerprint` of ``name`` with pcrjax's code and
+    ``packages``'): key None where nothing is kept (no folder, or a closure not plain data)."""
+    folder = config.trace_cache_dir()
+    return folder, None if folder is None else fingerprint(name, closure, (pcrjax, *packages))
 
 
 def _kept(jitted, folder: Path, name: str, key: str, args):

@@ -108,7 +108,7 @@ def test_a_program_compiled_ahead_is_kept_like_a_jitted_one(folder):
 
 def test_a_simulations_chunk_is_kept_and_a_later_run_skips_its_trace(folder, monkeypatch):
     """`simulate` compiles its chunk of steps from the kept program once one is on disk (a later
-    process: the compiled chunks forgotten), to the same trajectory."""
+    process: the compiled chunks forgotten), to the same trajectory as `rollout` traced afresh."""
     from pcrjax import simulation
 
     scene = pcrjax.load_scene("cantilever")
@@ -123,5 +123,6 @@ def test_a_simulations_chunk_is_kept_and_a_later_run_skips_its_trace(folder, mon
     simulation.release_compiled()
     second = pcrjax.simulate(scene, chunk=4)
     assert traced == []
-    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
-        assert np.array_equal(a, b)
+    plain = jax.jit(pcrjax.rollout)(scene)
+    for a, b, c in zip(jax.tree.leaves(first), jax.tree.leaves(second), jax.tree.leaves(plain), strict=True):
+        assert np.array_equal(a, b) and np.array_equal(a, c)
