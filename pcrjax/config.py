@@ -54,9 +54,9 @@ def enable_compilation_cache() -> Path | None:
         return None
     _traces = traces
     jax.config.update("jax_compilation_cache_dir", str(d))
-    # every program, however small: the eager array operations that build a scene or a fit's
-    # problem compile in 5-50 ms each, some 100 of them a process, which a warm process would
-    # otherwise compile again (a Triskele fit's model then builds in 2 s instead of 3.3 s)
+    # every program, however small: the eager array operations that build a scene, a fit's
+    # problem or the outputs compile in milliseconds each, but there are about a hundred of them
+    # a process, which every warm process would otherwise compile again
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return d
