@@ -48,7 +48,6 @@ from .least_squares import FitError, levenberg_marquardt
 from .problem import padded_frames
 
 SCREENED = 1024  # sets of lengths screened (the nominal ones and a Latin hypercube)
-SCREEN_CHUNK = 128  # of them in one call of the screen's program
 TAUS = 25  # tau values screened per set of lengths, log-spaced over the prior's range
 POLISHED = 8  # the best screened polished by Levenberg-Marquardt
 KEPT = 3  # polished candidates passed on to the full model's ranking ...
@@ -187,38 +186,30 @@ def free_residual(motion, rest, w, phi, log_tau):
     return data - A @ amps
 
 
-def screen_costs(scene, free, log_taus, xs):
-    """The weighted sums of squares (len(xs), len(log_taus)) of the free motion ``free``
-    (`FreeMotion.arrays`) at each of the candidate log lengths ``xs`` and log tau ``log_taus``
-    (inf where the static solve fails): the screen's program.
+def modes_program(from_push: bool):
+    """``(scene, log lengths) -> `lumped` `` (``from_push``: `lumped_modes`): the program that
+    the screen runs once per candidate and the polish once per set of lengths it tries. The
+    screen calls it candidate by candidate rather than as a batch, so that the screen and the
+    polish share one compiled static solve (a program of a batch is another program, and the
+    static solve is most of either's compile). Each solve runs the platform's load continuation:
+    Newton started from a solved neighbour instead misses a few percent of the prior, in the
+    corner where one rod is short (triskele_push_release_r2's truth lies there)."""
 
-    One static solve and its compliance per candidate, one after another (`lax.map`): a call per
-    candidate would wait for the interpreter lock at every call while the fit's Jacobian is
-    traced in a thread beside it, and a `vmap` batch runs every member until its slowest has
-    finished. Each solve runs the platform's load continuation: Newton started from a solved
-    neighbour instead misses a few percent of the prior, in the corner where one rod is short
-    (triskele_push_release_r2's truth lies there). The tau grid is a `lax.map` too, so that each
-    least-squares fit of the amplitudes is one LAPACK call: the screen's chunks run side by side,
-    which a batched LAPACK call would hang (`identify.threads`). Unbatched, the screen also takes
-    about 0.7 of the time."""
+    def of(scene, log_lengths):
+        return lumped(scene, log_lengths, from_push)
 
-    def costs(x):
-        rest, w, phi, ok = lumped(scene, x)
-        cost = jax.lax.map(lambda lt: jnp.sum(jnp.square(free_residual(free, rest, w, phi, lt))), log_taus)
-        return jnp.where(ok, cost, jnp.inf)
-
-    return jax.lax.map(costs, xs)
+    return of
 
 
-def polish_residual(from_push: bool):
-    """``(scene, free, y) -> `free_residual` `` at log lengths ``y[:-1]`` and log tau ``y[-1]``
-    (NaN where the static solve fails; ``from_push``: `lumped_modes`): the polish's programs."""
-
-    def residual_at(scene, free, y):
-        rest, w, phi, ok = lumped(scene, y[:-1], from_push)
-        return jnp.where(ok, free_residual(free, rest, w, phi, y[-1]), jnp.nan)
-
-    return residual_at
+def tau_residuals(free, rest, w, phi, ok, log_taus):
+    """`free_residual` of the modes ``(rest, w, phi)`` at each of ``log_taus`` (len(log_taus),
+    rows; NaN where ``ok``, their static solve's convergence, is false): one least-squares fit of
+    the amplitudes after another (`jax.lax.map`), so that each is one LAPACK call and the
+    programs run side by side in threads (`identify.threads`). It takes `lumped`'s outputs as
+    they come, so a caller queues it behind the static solve without waiting for that."""
+    w, phi = jnp.where(ok, w, 1.0), jnp.where(ok, phi, jnp.eye(3))  # a failed solve's NaN kept out of LAPACK
+    r = jax.lax.map(lambda lt: free_residual(free, rest, w, phi, lt), log_taus)
+    return jnp.where(ok, r, jnp.nan)
 
 
 def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, seed: int = 0, warm=None):
@@ -235,37 +226,45 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
         warm()
     x0 = np.asarray(theta[i_len], float)
     tau0 = float(np.mean(np.asarray(problem.fixed["tau"])))
-    log_taus = jnp.asarray(np.log(tau0) + np.linspace(-1.0, 1.0, TAUS) * np.log(tau_range))
+    log_taus = np.log(tau0) + np.linspace(-1.0, 1.0, TAUS) * np.log(tau_range)
     # The programs take the scene and the free motion (padded like the full model's frames,
     # `problem.padded_frames`) as arguments: recordings of one robot share them.
     free = motion.arrays(padded_frames(int(motion.t.size)))
 
-    # The polish's model, (log lengths, log tau) -> whitened residuals, is one program with its
-    # trace kept on disk; where its static solve fails, the rest reached from the push
-    # (`lumped_modes`), a program compiled only then.
-    plain = traces.jit_over(polish_residual(False), "identify-polish", problem.scene, (), (identify,))
-    from_push = traces.jit_over(polish_residual(True), "identify-polish-push", problem.scene, (), (identify,))
+    # One static solve per set of lengths gives the modes (a program with its trace kept on
+    # disk; where its continuation is lost, the rest reached from the push, `lumped_modes`, a
+    # program compiled only then), and one small program their residuals at each of a row of
+    # log tau: the screen's tau grid, or the polish's tau and its finite difference.
+    plain = traces.jit_over(modes_program(False), "identify-modes", problem.scene, (), (identify,))
+    pushed = traces.jit_over(modes_program(True), "identify-modes-push", problem.scene, (), (identify,))
+    at_taus = traces.jit(tau_residuals, "identify-tau-residuals", (), (identify,))
 
-    def solved(y, first, then):
-        """(residuals by the program ``first``, or by ``then`` where its solve fails; whether
-        ``then`` gave them)"""
-        r = first(free, y)
-        if bool(jnp.all(jnp.isfinite(r))):
-            return r[: motion.rows], False
-        return then(free, y)[: motion.rows], True
+    def residuals(modes, taus):
+        """Residuals (len(taus), rows) of ``modes`` (NaN where their static solve failed)."""
+        padded = np.full(TAUS, taus[-1])
+        padded[: len(taus)] = taus
+        return np.asarray(at_taus(free, *modes, jnp.asarray(padded)))[: len(taus), : motion.rows]
+
+    def solved(x, taus, first, then):
+        """(residuals at log lengths ``x`` and each of ``taus`` by the program ``first``, or by
+        ``then`` where its solve fails; whether ``then`` gave them)"""
+        r = residuals(first(x), taus)
+        if np.all(np.isfinite(r)):
+            return r, False
+        return residuals(then(x), taus), True
 
     def residual(y):
-        return solved(y, plain, from_push)[0]
+        return solved(jnp.asarray(y[:-1]), [y[-1]], plain, pushed)[0][0]
 
     def with_jacobian(y):
         # the differences take the rest the way the centre took it: where the plain solve failed
-        # there, it fails a step of 1e-6 away too, and a failed continuation costs twice a solve
+        # there, it fails a step of 1e-6 away too, and a failed continuation costs twice a solve;
+        # the step in tau needs no static solve of its own
         y = np.asarray(y, float)
-        r, pushed = solved(jnp.asarray(y), plain, from_push)
-        r = np.asarray(r)
-        order = (from_push, plain) if pushed else (plain, from_push)
-        near = [np.asarray(solved(jnp.asarray(y + FD_STEP * e), *order)[0]) for e in np.eye(y.size)]
-        return r, np.stack([(n - r) / FD_STEP for n in near], axis=1)
+        (r, r_tau), by_push = solved(jnp.asarray(y[:-1]), [y[-1], y[-1] + FD_STEP], plain, pushed)
+        order = (pushed, plain) if by_push else (plain, pushed)
+        near = [solved(jnp.asarray(y[:-1] + FD_STEP * e), [y[-1]], *order)[0][0] for e in np.eye(y.size - 1)]
+        return r, np.stack([(n - r) / FD_STEP for n in [*near, r_tau]], axis=1)
 
     def polish(y):
         try:
@@ -277,11 +276,12 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
 
     cands = np.log(latin_hypercube(np.exp(x0), prior_length, SCREENED, seed))
 
-    # the candidates in chunks of `SCREEN_CHUNK` (one program whatever the cores), one thread per core
-    screen_all = traces.jit_over(screen_costs, "identify-screen", problem.scene, (), (identify,))
-    costs = lambda c: np.asarray(screen_all(free, log_taus, c))  # noqa: E731
-    chunks = jnp.asarray(cands).reshape(-1, SCREEN_CHUNK, cands.shape[1])
-    screened = np.concatenate(list(threads.map_in_threads(costs, chunks)))
+    # one candidate at a time on one thread per core (the first alone: it compiles the programs)
+    def costs(x):
+        return np.sum(np.square(residuals(plain(x), log_taus)), axis=1)
+
+    screened = np.stack(list(threads.map_in_threads(costs, list(cands))))
+    screened[~np.isfinite(screened)] = np.inf
     best = np.min(screened, axis=1)
     order = [i for i in np.argsort(best, kind="stable") if np.isfinite(best[i])]
     dof = max(motion.rows - 2 * 3, 1)

@@ -18,6 +18,7 @@ again and replaced.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import importlib.metadata
 import os
@@ -135,26 +136,28 @@ def _store(path: Path, exported):
         tmp.unlink(missing_ok=True)
 
 
-def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = ()):
+def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = (), fixed: tuple = ()):
     """``jax.jit(fn)``, with its traced programs kept on disk where `config.trace_cache_dir` is set.
 
     ``closure``: everything ``fn``'s trace depends on besides the code of ``packages`` (pcrjax's
     own is always included) and the arguments' structure, shapes and dtypes: the arrays and
     settings ``fn`` closes over. Naming too little makes a stale program load, so name the
-    objects ``fn`` reads whole. The result is for calling, not for transforming (`vmap`, `grad`).
+    objects ``fn`` reads whole. ``fixed``: leading arguments of every call (the result's
+    ``call(*args)`` runs ``fn(*fixed, *args)``), whose structure, shapes and dtypes are read
+    once rather than at each call. The result is for calling, not for transforming (`vmap`, `grad`).
     """
     jitted = jax.jit(fn)
     folder, key = _folder_and_key(name, closure, packages)
     if key is None:
-        return jitted
+        return functools.partial(jitted, *fixed)
     programs, lock = {}, threading.Lock()
 
     def call(*args):
         sig = _signature(args)
         with lock:
             if sig not in programs:
-                programs[sig] = _kept(jitted, folder, name, key, args)
-        return programs[sig](*args)
+                programs[sig] = _kept(jitted, folder, name, key, (*fixed, *args))
+        return programs[sig](*fixed, *args)
 
     return call
 
@@ -196,5 +199,10 @@ def jit_over(fn, name: str, tree, closure, packages: tuple[ModuleType, ...] = ()
     equinox modules from its own record of the arguments' structure, so ``tree``'s structure
     names the program instead (beside ``closure``), and trees of that structure share it."""
     leaves, structure = jax.tree.flatten(tree)
-    run = jit(lambda leaves, *args: fn(jax.tree.unflatten(structure, leaves), *args), name, (str(structure), closure), packages)
-    return lambda *args: run(leaves, *args)
+    return jit(
+        lambda leaves, *args: fn(jax.tree.unflatten(structure, leaves), *args),
+        name,
+        (str(structure), closure),
+        packages,
+        (leaves,),
+    )

@@ -181,11 +181,12 @@ def test_programs_the_screen_runs_in_threads_hold_no_batched_lapack_call():
     motion = platform_screen.FreeMotion(rec, experiment.forcing_end(scene))
     free = motion.arrays(motion.t.size)
     x = jnp.log(jnp.array([[31.9e-3, 31.3e-3, 31.0e-3]]))
-    screen = jax.jit(platform_screen.screen_costs).lower(scene, free, jnp.zeros(3), x).as_text()
-    assert _batched_lapack_calls(screen) == []
     for from_push in (False, True):
-        polish = jax.jit(platform_screen.polish_residual(from_push)).lower(scene, free, jnp.append(x[0], -7.0)).as_text()
-        assert _batched_lapack_calls(polish) == []
+        modes = jax.jit(platform_screen.modes_program(from_push)).lower(scene, x[0]).as_text()
+        assert _batched_lapack_calls(modes) == []
+    modes = (jnp.zeros(3), jnp.ones(3), jnp.eye(3), True)  # rest, angular frequencies, shapes, converged
+    taus = jax.jit(platform_screen.tau_residuals).lower(free, *modes, jnp.zeros(platform_screen.TAUS)).as_text()
+    assert _batched_lapack_calls(taus) == []
     batched = jax.jit(jax.vmap(lambda a: jnp.linalg.lstsq(a, jnp.ones(6))[0])).lower(jnp.ones((5, 6, 2))).as_text()
     assert _batched_lapack_calls(batched) == ["lapack_dgesdd_ffi"]
 
