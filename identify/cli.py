@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -74,10 +75,15 @@ def _scale(values, unit: str):
     return factor, f"{prefix}{unit}"
 
 
-def _plots(out: Path, rec, seen, result):
+def _import_pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
+
+
+def _plots(out: Path, rec, seen, result):
+    _import_pyplot()
     import matplotlib.pyplot as plt
 
     t, meas = rec.t, rec.pose
@@ -166,6 +172,8 @@ def run(args) -> dict:
 
     if args.refine < 0:
         raise ValueError(f"--refine must be 0 or more, got {args.refine}")
+    # matplotlib's import (about a second) while the fit runs, which mostly waits on compiled programs
+    threading.Thread(target=_import_pyplot, daemon=True).start()
     result = fit(
         problem,
         max_iter=args.max_iter,
