@@ -61,7 +61,10 @@ class PlatformMotion(eqx.Module):
 
     @classmethod
     def rest(cls, co, p, R):
-        z = jnp.zeros(3, p.dtype)
+        # Zeros that depend on p: under jvp their tangents are nonzero from the start, as they are
+        # after a step, so that JAX finds the tangents (and, under vmap, the batching) of a scan of
+        # steps in one trace of the step instead of two.
+        z = 0.0 * p
         return cls(p1=p, v1=z, gp=z, gv=z, R1=R, R2=R, w1=z, wh=z)
 
 
