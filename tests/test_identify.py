@@ -180,9 +180,9 @@ def test_programs_the_screen_runs_in_threads_hold_no_batched_lapack_call():
     scene = Problem(rec, ("tau", "lengths")).scene
     motion = platform_screen.FreeMotion(rec, experiment.forcing_end(scene))
     free = motion.arrays(motion.t.size)
-    x = jnp.log(jnp.array([[31.9e-3, 31.3e-3, 31.0e-3]]))
+    x = jnp.log(jnp.array([31.9e-3, 31.3e-3, 31.0e-3]))
     for from_push in (False, True):
-        modes = jax.jit(platform_screen.modes_program(from_push)).lower(scene, x[0]).as_text()
+        modes = jax.jit(platform_screen.modes_program(from_push)).lower(scene, x).as_text()
         assert _batched_lapack_calls(modes) == []
     modes = (jnp.zeros(3), jnp.ones(3), jnp.eye(3), True)  # rest, angular frequencies, shapes, converged
     taus = jax.jit(platform_screen.tau_residuals).lower(free, *modes, jnp.zeros(platform_screen.TAUS)).as_text()
