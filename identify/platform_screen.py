@@ -216,14 +216,12 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     """(log tau, the candidate log lengths worth ranking with the full model, best first) of a
     planar push-release recording (see the module's text). ``theta``: the start (its lengths
     the nominal ones, its damping the scene's); ``warm()`` is called once the recording is
-    known to hold enough free motion."""
+    known to hold enough free motion and the static solve's program is traced."""
     from .start import latin_hypercube  # noqa: PLC0415 (start imports this module)
 
     load = problem.scene.load  # free from the last event: a push released, or a load stepped on
     events = [float(np.asarray(v)) for v in (load.apply_time, load.release_time) if np.isfinite(np.asarray(v))]
     motion = FreeMotion(problem.rec, max([experiment.forcing_end(problem.scene), *events]))
-    if warm is not None:
-        warm()
     x0 = np.asarray(theta[i_len], float)
     tau0 = float(np.mean(np.asarray(problem.fixed["tau"])))
     log_taus = np.log(tau0) + np.linspace(-1.0, 1.0, TAUS) * np.log(tau_range)
@@ -238,6 +236,10 @@ def screen(problem, theta, i_len, say, prior_length: float, tau_range: float, se
     plain = traces.jit_over(modes_program(False), "identify-modes", problem.scene, (), (identify,))
     pushed = traces.jit_over(modes_program(True), "identify-modes-push", problem.scene, (), (identify,))
     at_taus = traces.jit(tau_residuals, "identify-tau-residuals", (), (identify,))
+    # The static solve traced first, alone: it compiles while ``warm`` traces the fit's programs.
+    plain.trace(x0)
+    if warm is not None:
+        warm()
 
     def residuals(modes, taus):
         """Residuals (len(taus), rows) of ``modes`` (NaN where their static solve failed)."""

@@ -18,7 +18,6 @@ again and replaced.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import importlib.metadata
 import os
@@ -145,20 +144,29 @@ def jit(fn, name: str, closure, packages: tuple[ModuleType, ...] = (), fixed: tu
     objects ``fn`` reads whole. ``fixed``: leading arguments of every call (the result's
     ``call(*args)`` runs ``fn(*fixed, *args)``), whose structure, shapes and dtypes are read
     once rather than at each call. The result is for calling, not for transforming (`vmap`, `grad`).
+    Its ``trace(*args)`` traces the program for such arguments without compiling it (tracing
+    holds Python's lock, compiling does not: a caller traces first what another thread is to
+    compile or run meanwhile).
     """
     jitted = jax.jit(fn)
     folder, key = _folder_and_key(name, closure, packages)
-    if key is None:
-        return functools.partial(jitted, *fixed)
     programs, lock = {}, threading.Lock()
 
-    def call(*args):
+    def program(args):
         sig = _signature(args)
         with lock:
             if sig not in programs:
-                programs[sig] = _kept(jitted, folder, name, key, (*fixed, *args))
-        return programs[sig](*fixed, *args)
+                programs[sig] = jitted if key is None else _kept(jitted, folder, name, key, (*fixed, *args))
+        return programs[sig]
 
+    def call(*args):
+        return program(args)(*fixed, *args)
+
+    def trace(*args):
+        if program(args) is jitted:
+            jitted.trace(*fixed, *args)
+
+    call.trace = trace
     return call
 
 
