@@ -173,7 +173,7 @@ def _summary(pb: Problem, theta, J, r, iterations, converged, history, stages, n
         converged=converged,
         history=history,
         stages=stages,
-        outliers=np.asarray(pb.t[robust.spikes(z, pb.keep)]).tolist(),
+        outliers=np.asarray(pb.t)[robust.spikes(z, pb.keep)].tolist(),
         message=" ".join([*notes, _implausible_push(pb, theta)]).strip(),
     )
 

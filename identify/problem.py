@@ -283,7 +283,7 @@ class Problem:
     def _window(self, t_end: float | None = None):
         """`window` with the mask padded to the programs' frames."""
         mask, active = self.window(t_end)
-        return jnp.concatenate([mask, jnp.zeros(self._frames[0].size - mask.size)]), active
+        return jnp.asarray(np.concatenate([np.asarray(mask), np.zeros(self._frames[0].size - mask.size)])), active
 
     def counted(self, t_end: float | None = None) -> int:
         """Residuals that count in the window up to ``t_end``."""
@@ -389,12 +389,12 @@ class Problem:
             th = theta.copy()
             if i is not None:
                 th[i] += 1.0
-            motions.append(self._residual(jnp.asarray(th), noise, mask, active)[1])
-        if not all(bool(jnp.all(jnp.isfinite(m))) for m in motions):
+            motions.append(np.asarray(self._residual(jnp.asarray(th), noise, mask, active)[1]))
+        if not all(np.all(np.isfinite(m)) for m in motions):
             return theta, math.inf
-        m0, dm = motions[0], jnp.stack([m - motions[0] for m in motions[1:]], axis=-1) if push.size else None
+        m0, dm = motions[0], np.stack([m - motions[0] for m in motions[1:]], axis=-1) if push.size else None
         x0 = np.concatenate([theta[push], theta[n:]])
-        args = (m0, dm, jnp.asarray(theta), jnp.asarray(push), noise, mask)
+        args = (jnp.asarray(m0), None if dm is None else jnp.asarray(dm), jnp.asarray(theta), jnp.asarray(push), noise, mask)
         rows = 3 * self.t.size  # the programs' padded frames left out
         rf = lambda x: self._linear_residual(x, *args)[:rows]  # noqa: E731
         rj = lambda x: (rf(x), self._linear_jacobian(x, *args)[:rows])  # noqa: E731

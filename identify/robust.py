@@ -14,6 +14,7 @@ the Huber threshold lies beyond it.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -24,24 +25,32 @@ AROUND = 15  # frames: the stretch over which the typical miss is measured (shor
 MAD_TO_SIGMA = 1.0 / 0.6744897501960817  # median |z| of a unit Gaussian
 
 
+def _xp(z):
+    """The array module of ``z``: numpy for numpy's arrays (no program to compile for them)."""
+    return jnp if isinstance(z, jax.Array) else np
+
+
 def huber(z, k):
     """The residuals ``z`` transformed so that ``0.5 |out|^2`` is the Huber loss with threshold
     ``k`` (inf: unchanged)."""
-    a = jnp.abs(z)
-    outer = jnp.sqrt(jnp.maximum(2.0 * k * a - k * k, k * k))  # the max keeps the unused branch finite
-    return jnp.where(a <= k, z, jnp.sign(z) * outer)
+    xp = _xp(z)
+    a = xp.abs(z)
+    outer = xp.sqrt(xp.maximum(2.0 * k * a - k * k, k * k))  # the max keeps the unused branch finite
+    return xp.where(a <= k, z, xp.sign(z) * outer)
 
 
 def unhuber(r, k):
     """The whitened residuals whose `huber` transform is ``r``."""
-    a = jnp.abs(r)
-    return jnp.where(a <= k, r, jnp.sign(r) * (a * a + k * k) / (2.0 * k))
+    xp = _xp(r)
+    a = xp.abs(r)
+    return xp.where(a <= k, r, xp.sign(r) * (a * a + k * k) / (2.0 * k))
 
 
 def huber_slope(z, k):
     """d `huber` / dz at ``z``."""
-    a = jnp.abs(z)
-    return jnp.where(a <= k, 1.0, k / jnp.sqrt(jnp.maximum(2.0 * k * a - k * k, k * k)))
+    xp = _xp(z)
+    a = xp.abs(z)
+    return xp.where(a <= k, 1.0, k / xp.sqrt(xp.maximum(2.0 * k * a - k * k, k * k)))
 
 
 def _sliding_median(a, width: int):
