@@ -183,7 +183,12 @@ class Problem:
 
         closure = (self.fit, self.unknowns, self.rec.experiment, self.rec.exposure)
         run = traces.jit_over(program, f"identify-{name}", self.scene, closure, (identify,))
-        return lambda *args: run(*self._frames, *args)
+
+        def call(*args):
+            return run(*self._frames, *args)
+
+        call.trace = lambda *args: run.trace(*self._frames, *args)
+        return call
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):
@@ -345,6 +350,10 @@ class Problem:
         """Simulated planar poses (robot frame) every dt up to ``t_end`` (same compiled program)."""
         m = self._residual(jnp.asarray(theta), self._noise(), *self._window(t_end))[1]
         return np.asarray(m)[: int(round(t_end / self.scene.solver.dt)) + 1]
+
+    def trace_motion(self, theta, t_end):
+        """Trace the program of `residual` and `motion` for these arguments, without compiling it."""
+        self._residual.trace(jnp.asarray(theta), self._noise(), *self._window(t_end))
 
     def residual_and_jacobian(self, theta, t_end=None):
         r, J = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self._window(t_end))[:2]

@@ -111,7 +111,12 @@ def static_shift(scene):
     the screen passes over such lengths."""
     t_end = jnp.asarray(experiment.forcing_end(scene), jnp.float64)
     run = traces.jit_over(_shift, "identify-static-shift", platform_screen.for_screening(scene), (), (identify,))
-    return lambda log_lengths: run(t_end, log_lengths)
+
+    def shift(log_lengths):
+        return run(t_end, log_lengths)
+
+    shift.trace = lambda log_lengths: run.trace(t_end, log_lengths)
+    return shift
 
 
 class Features:
@@ -207,14 +212,23 @@ class Features:
         matched = r[:, 0] * np.exp((shown[k] - r[:, 0]) / physical[k])
         return np.concatenate([matched, shape[k_shape]])
 
+    def trace(self, x):
+        """Trace the program that `of` runs (a static shift, or a rollout), without compiling it."""
+        if self.actuated:
+            self._shift.trace(jnp.asarray(x))
+            return
+        th = self.theta.copy()
+        th[self.i_len] = x
+        self.problem.trace_motion(th, self.t_from + SIMULATED)
+
     def of_all(self, xs, warm=None) -> list:
         """`of` each of the log lengths ``xs`` (n, rods), on as many threads as there are cores.
-        ``warm()`` is called once the program has compiled (the caller compiles beside the rest)."""
-        found = threads.map_in_threads(self.of, xs)
-        first = next(found)  # compiles once, before the threads
-        if warm is not None:
+        ``warm()`` is called once the program is traced (the caller traces its own programs
+        while this one compiles)."""
+        if warm is not None and len(xs):
+            self.trace(xs[0])
             warm()
-        return [first, *found]
+        return list(threads.map_in_threads(self.of, xs))
 
     def distance(self, features, shapes: bool = True) -> float:
         """Weighted relative distance of model ``features`` to the recorded ones (inf: failed);
