@@ -359,10 +359,14 @@ def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
         cost = 0.5 * float(r @ r)
         if 2 * cost / max(m, 1) <= WORSE * chi2:
             return th, r, iterations, jacobians, distance
-        why = (
-            f"reached a reduced chi-square of {2 * cost / max(m, 1):.3g} against the fit's {chi2:.3g}: it did not find that "
-            "model's optimum"
-        )
+        reached = f"reached a reduced chi-square of {2 * cost / max(m, 1):.3g} against the fit's {chi2:.3g}"
+        if distance is not None and distance <= STILL:  # a minimum of the finer model, yet a far worse fit
+            why = (
+                f"{reached} at a minimum of that model ({distance:.2g} standard errors from it): a wrong minimum, or a "
+                "recording that the fit's own grid made"
+            )
+        else:
+            why = f"{reached}: it did not find that model's optimum"
     raise FitError(why)
 
 
