@@ -262,12 +262,19 @@ def _plain(values: dict) -> dict:
     return out
 
 
-def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
+def _iterations(say, stage):
+    """Levenberg-Marquardt's ``progress(i, loss, step)`` as lines ``say(message)`` (None: none)."""
+    if say is None:
+        return None
+    return lambda i, cost, step: say(f"  {stage}: iteration {i:3d}: loss {cost:.6g}, largest step {step:.3g}")
+
+
+def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None, say=None):
     """(theta, residuals, iterations) of Levenberg-Marquardt on ``problem``'s residuals over the
     frames up to ``t_end`` from ``theta`` (where they are ``r0``, if known), with the Jacobian
     ``J`` held (each step taken only where it lowers the cost), until the Gauss-Newton decrement
-    is below ``gain`` (None: a millionth of the cost). Raises `FitError` where the rollout at
-    ``theta`` fails."""
+    is below ``gain`` (None: a millionth of the cost); each iteration reported to ``say(message)``.
+    Raises `FitError` where the rollout at ``theta`` fails."""
     rows = np.repeat(np.asarray(problem.window(t_end)[0]) > 0, 3)
     held = J * rows[:, None]
     theta = np.asarray(theta, float)
@@ -285,12 +292,13 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None):
     cost = 0.5 * float(last["r"] @ last["r"])
     ftol = 1e-6 if gain is None else gain / max(cost, 1e-300)
     theta, _, r, it, _, _ = levenberg_marquardt(
-        residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step, huber=problem.huber
-    )
+        residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step, huber=problem.huber,
+        progress=_iterations(say, "whole recording, held Jacobian" if t_end is None else f"window {t_end:.3g} s"),
+    )  # fmt: skip
     return theta, r, it
 
 
-def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH, r0=None):
+def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH, r0=None, say=None):
     """(theta, residuals, iterations, Jacobians, distance) minimising ``problem``'s residuals over
     the whole recording from ``theta``. Over the windows ending at ``window_ends`` before the
     last (the fit's continuation: a coarse grid's answer can be cycles of phase off over a long
@@ -302,15 +310,16 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     every step, ``refresh`` Jacobians in all (0: ``J`` held to the end). ``distance``: that
     decrement as standard errors, sqrt(2 decrement), at the answer (None where ``J`` was held
     to the end). ``r0``: the residuals at ``theta`` over the whole recording, if known (used
-    where there are no windows). Raises `FitError` where the refined model's rollout fails."""
+    where there are no windows). ``say(message)`` is told each iteration. Raises `FitError`
+    where the refined model's rollout fails."""
     total = 0
     for t_end in window_ends[:-1]:
-        theta, _, it = _held(problem, theta, J, t_end, max_iter)
+        theta, _, it = _held(problem, theta, J, t_end, max_iter, say=say)
         total += it
     still = 0.5 * STILL**2  # the decrement of a parameter STILL standard errors off a quadratic optimum
     # the held Jacobian first (cheap iterations, where it is close), then the model's own
     known = r0 if len(window_ends) == 1 else None  # the residuals at theta, where no window came first
-    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still, known)
+    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still, known, say)
     total += it
     if not refresh:
         return theta, r, total, 0, None
@@ -327,6 +336,7 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     theta, J, r, it, _, _ = levenberg_marquardt(
         problem.residual, own, theta, refresh - 1, ftol=still / max(0.5 * float(r @ r), 1e-300),
         max_step=problem.max_step, initial=(r, J), lam0=1e-9, huber=problem.huber,
+        progress=_iterations(say, "whole recording, own Jacobian"),
     )  # fmt: skip
     return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
 
@@ -342,16 +352,16 @@ def _near(fine, theta, J):
     return bool(np.all(np.isfinite(r)) and np.sqrt(2.0 * decrement(J, r, fine.huber)) <= NEAR_SE), r
 
 
-def _attempt(fine, tries, J, m, chi2, refresh=REFRESH):
+def _attempt(fine, tries, J, m, chi2, refresh=REFRESH, say=None):
     """(theta, residuals, iterations, Jacobians, distance) of the first `chord_refit` of ``fine`` from
     ``tries`` ((start, window ends, residuals at start over the whole recording or None), in
     order) that ends within ``WORSE`` times the fit's reduced chi-square ``chi2`` (``m`` degrees
     of freedom); raises `FitError` saying why the last did not (a finer model that fits far
-    worse than the coarse one: a wrong minimum)."""
+    worse than the coarse one: a wrong minimum). ``say(message)`` is told each iteration."""
     iterations = jacobians = 0
     for start, ends, r0 in tries:
         try:
-            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0)
+            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0, say=say)
         except FitError as e:
             why = f"failed ({e})"
             continue
@@ -417,7 +427,9 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
                 tries.append((base, (None,), r0))
         tries.append((base, windows, None))
         try:
-            th, r, iterations, jacobians, distance = _attempt(fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH)
+            th, r, iterations, jacobians, distance = _attempt(
+                fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH, progress
+            )
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
             notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} {e}, so its {what} error is not measured")
             return None
@@ -525,7 +537,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
     # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
     tries = [(start, (None,), None)] + ([(start, window_ends, None)] if len(window_ends) > 1 else [])
     try:
-        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2)
+        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2, say=say)
     except FitError as e:
         notes.append(f"the refit from the start on the finest grid {e}")
         return False
@@ -554,7 +566,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2)
+            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2, say=say)
         except FitError as e:
             notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False
