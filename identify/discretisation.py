@@ -262,18 +262,26 @@ def _plain(values: dict) -> dict:
     return out
 
 
-def _iterations(say, stage):
-    """Levenberg-Marquardt's ``progress(i, loss, step)`` as lines ``say(message)`` (None: none)."""
-    if say is None:
+def _iterations(progress, stage):
+    """Levenberg-Marquardt's ``progress(i, loss, step)`` as the fit's ``progress(stage, i, loss,
+    step)``, the stage indented under its refit's line (None: none)."""
+    if progress is None:
         return None
-    return lambda i, cost, step: say(f"  {stage}: iteration {i:3d}: loss {cost:.6g}, largest step {step:.3g}")
+    return lambda i, cost, step: progress(f"  {stage}", i, cost, step)
 
 
-def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None, say=None):
+def _messages(progress):
+    """The fit's ``progress(stage, i, loss, step)`` as ``say(message)``, a line without a loss."""
+    if progress is None:
+        return lambda msg: None
+    return lambda msg: progress(msg, 0, None, 0.0)
+
+
+def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None, progress=None):
     """(theta, residuals, iterations) of Levenberg-Marquardt on ``problem``'s residuals over the
     frames up to ``t_end`` from ``theta`` (where they are ``r0``, if known), with the Jacobian
     ``J`` held (each step taken only where it lowers the cost), until the Gauss-Newton decrement
-    is below ``gain`` (None: a millionth of the cost); each iteration reported to ``say(message)``.
+    is below ``gain`` (None: a millionth of the cost); each iteration told to ``progress``.
     Raises `FitError` where the rollout at ``theta`` fails."""
     rows = np.repeat(np.asarray(problem.window(t_end)[0]) > 0, 3)
     held = J * rows[:, None]
@@ -293,12 +301,14 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None, say=None):
     ftol = 1e-6 if gain is None else gain / max(cost, 1e-300)
     theta, _, r, it, _, _ = levenberg_marquardt(
         residual, lambda x: (residual(x), held), theta, max_iter, ftol=ftol, max_step=problem.max_step, huber=problem.huber,
-        progress=_iterations(say, "whole recording, held Jacobian" if t_end is None else f"window {t_end:.3g} s"),
+        progress=_iterations(progress, "whole recording, held Jacobian" if t_end is None else f"window {t_end:.3g} s"),
     )  # fmt: skip
     return theta, r, it
 
 
-def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH, r0=None, say=None):
+def chord_refit(
+    problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH, r0=None, progress=None
+):
     """(theta, residuals, iterations, Jacobians, distance) minimising ``problem``'s residuals over
     the whole recording from ``theta``. Over the windows ending at ``window_ends`` before the
     last (the fit's continuation: a coarse grid's answer can be cycles of phase off over a long
@@ -310,16 +320,16 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     every step, ``refresh`` Jacobians in all (0: ``J`` held to the end). ``distance``: that
     decrement as standard errors, sqrt(2 decrement), at the answer (None where ``J`` was held
     to the end). ``r0``: the residuals at ``theta`` over the whole recording, if known (used
-    where there are no windows). ``say(message)`` is told each iteration. Raises `FitError`
-    where the refined model's rollout fails."""
+    where there are no windows). ``progress(stage, i, loss, step)`` is told each iteration.
+    Raises `FitError` where the refined model's rollout fails."""
     total = 0
     for t_end in window_ends[:-1]:
-        theta, _, it = _held(problem, theta, J, t_end, max_iter, say=say)
+        theta, _, it = _held(problem, theta, J, t_end, max_iter, progress=progress)
         total += it
     still = 0.5 * STILL**2  # the decrement of a parameter STILL standard errors off a quadratic optimum
     # the held Jacobian first (cheap iterations, where it is close), then the model's own
     known = r0 if len(window_ends) == 1 else None  # the residuals at theta, where no window came first
-    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still, known, say)
+    theta, r, it = _held(problem, theta, J, None, HELD_ITER if refresh else max_iter, still, known, progress)
     total += it
     if not refresh:
         return theta, r, total, 0, None
@@ -336,7 +346,7 @@ def chord_refit(problem, theta, J, window_ends=(None,), max_iter: int = CHORD_IT
     theta, J, r, it, _, _ = levenberg_marquardt(
         problem.residual, own, theta, refresh - 1, ftol=still / max(0.5 * float(r @ r), 1e-300),
         max_step=problem.max_step, initial=(r, J), lam0=1e-9, huber=problem.huber,
-        progress=_iterations(say, "whole recording, own Jacobian"),
+        progress=_iterations(progress, "whole recording, own Jacobian"),
     )  # fmt: skip
     return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
 
@@ -352,16 +362,16 @@ def _near(fine, theta, J):
     return bool(np.all(np.isfinite(r)) and np.sqrt(2.0 * decrement(J, r, fine.huber)) <= NEAR_SE), r
 
 
-def _attempt(fine, tries, J, m, chi2, refresh=REFRESH, say=None):
+def _attempt(fine, tries, J, m, chi2, refresh=REFRESH, progress=None):
     """(theta, residuals, iterations, Jacobians, distance) of the first `chord_refit` of ``fine`` from
     ``tries`` ((start, window ends, residuals at start over the whole recording or None), in
     order) that ends within ``WORSE`` times the fit's reduced chi-square ``chi2`` (``m`` degrees
     of freedom); raises `FitError` saying why the last did not (a finer model that fits far
-    worse than the coarse one: a wrong minimum). ``say(message)`` is told each iteration."""
+    worse than the coarse one: a wrong minimum). ``progress`` is told each iteration."""
     iterations = jacobians = 0
     for start, ends, r0 in tries:
         try:
-            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0, say=say)
+            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0, progress=progress)
         except FitError as e:
             why = f"failed ({e})"
             continue
@@ -405,12 +415,13 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
     space move below a third of an SE (else at the finest). Each move is in the standard errors
     of the finer model's noise levels (`noise_and_errors`). Then each start in ``rivals``
     (theta) that lies in another basin contests the answer on the finest grid (`_contest`).
-    ``progress(message)``. The failures and the contests' findings are returned as notes."""
+    ``progress(stage, iteration, loss, step)`` as the fit's (loss None: a line of its own). The
+    failures and the contests' findings are returned as notes."""
     m = problem.counted(None) - theta.size
     solver = problem.scene.solver
     nodes, dt, tl = solver.nodes, float(solver.dt), float(solver.newton.tol) * TOL_FACTOR
     levels, notes = [], []
-    say = progress if progress is not None else (lambda msg: None)
+    say = _messages(progress)
 
     def refit(what, n, h, base, windows, parent, predicted=None):
         t0 = time.perf_counter()
@@ -493,12 +504,12 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             if settled:
                 break
     for start in rivals:
-        if _contest(problem, levels, notes, np.asarray(start, float), J, chi2, m, say, window_ends, left):
+        if _contest(problem, levels, notes, np.asarray(start, float), J, chi2, m, progress, window_ends, left):
             break
     return levels, notes
 
 
-def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=lambda i: 0.0) -> bool:
+def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, left=lambda i: 0.0) -> bool:
     """Whether ``start`` (theta: where the fit began) takes the answer over from the chain's
     (`refine`'s module text, "Rival basins"). It contests only where the fit's grid led more than
     ``RIVAL_SE`` standard errors away from it and the chain's answer lies that far from it too.
@@ -510,7 +521,8 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
     ``CLOSE``, its time error is measured by refits at 2 and 4 times the finest dt (a "rival"
     level at 4 dt, then two "time" levels, coarse to fine, that end the list; their moves have
     the space error ``left(i)`` on level i's internal grid taken out, as `refine`'s time moves).
-    ``notes`` gets what was found."""
+    ``notes`` gets what was found; ``progress`` as `refine`'s."""
+    say = _messages(progress)
     last = levels[-1]
     if last.what != "time":
         return False
@@ -537,7 +549,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
     # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
     tries = [(start, (None,), None)] + ([(start, window_ends, None)] if len(window_ends) > 1 else [])
     try:
-        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2, say=say)
+        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2, progress=progress)
     except FitError as e:
         notes.append(f"the refit from the start on the finest grid {e}")
         return False
@@ -566,7 +578,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, say, window_ends, left=l
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2, say=say)
+            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2, progress=progress)
         except FitError as e:
             notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False
@@ -610,7 +622,8 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     move and the last time refinement's move or the extrapolation's uncertainty, combined in
     quadrature: the two errors add independently to leading order) and tolerance error, the
     model they come from and the refits made; its message says when a last refinement still
-    moved a measured value (`Problem.measured`) by more than a third of its standard error."""
+    moved a measured value (`Problem.measured`) by more than a third of its standard error.
+    ``progress`` as `refine`'s."""
     levels, notes = refine(problem, theta, J, max_levels, progress, result.loss, window_ends, rivals)
     message = _sentences([result.message, *notes])
     chains = {w: [i for i, lv in enumerate(levels) if lv.what == w] for w in ("space", "time")}

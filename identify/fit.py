@@ -418,7 +418,7 @@ def fit(
             J,
             result,
             refine_levels,
-            None if progress is None else (lambda msg: progress(msg, 0, None, 0.0)),
+            progress,
             window_ends=[w for _, w in stages[:-1]],
             rivals=[] if start is None else [start],
         )
