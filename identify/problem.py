@@ -182,13 +182,7 @@ class Problem:
             return method(pb, *args)
 
         closure = (self.fit, self.unknowns, self.rec.experiment, self.rec.exposure)
-        run = traces.jit_over(program, f"identify-{name}", self.scene, closure, (identify,))
-
-        def call(*args):
-            return run(*self._frames, *args)
-
-        call.trace = lambda *args: run.trace(*self._frames, *args)
-        return call
+        return traces.jit_over(program, f"identify-{name}", self.scene, closure, (identify,), self._frames)
 
     # -- parameter vector <-> values ----------------------------------------------------------
     def _initial_values(self, nom, given):

@@ -110,13 +110,7 @@ def static_shift(scene):
     whose continuation loses its path ends there, not retried (`platform_screen.for_screening`):
     the screen passes over such lengths."""
     t_end = jnp.asarray(experiment.forcing_end(scene), jnp.float64)
-    run = traces.jit_over(_shift, "identify-static-shift", platform_screen.for_screening(scene), (), (identify,))
-
-    def shift(log_lengths):
-        return run(t_end, log_lengths)
-
-    shift.trace = lambda log_lengths: run.trace(t_end, log_lengths)
-    return shift
+    return traces.jit_over(_shift, "identify-static-shift", platform_screen.for_screening(scene), (), (identify,), (t_end,))
 
 
 class Features:

@@ -201,16 +201,17 @@ def _kept(jitted, folder: Path, name: str, key: str, args):
     return jax.jit(exported.call)
 
 
-def jit_over(fn, name: str, tree, closure, packages: tuple[ModuleType, ...] = ()):
-    """``fn(tree, *args)`` as a program of ``*args`` (`jit`) in which ``tree`` (a pytree, e.g. a
-    scene) is an argument too, passed as its leaves: a program kept on disk cannot rebuild
+def jit_over(fn, name: str, tree, closure, packages: tuple[ModuleType, ...] = (), fixed: tuple = ()):
+    """``fn(tree, *fixed, *args)`` as a program of ``*args`` (`jit`) in which ``tree`` (a pytree,
+    e.g. a scene) is an argument too, passed as its leaves: a program kept on disk cannot rebuild
     equinox modules from its own record of the arguments' structure, so ``tree``'s structure
-    names the program instead (beside ``closure``), and trees of that structure share it."""
+    names the program instead (beside ``closure``), and trees of that structure share it.
+    ``fixed``: further leading arguments of every call, as `jit`'s."""
     leaves, structure = jax.tree.flatten(tree)
     return jit(
         lambda leaves, *args: fn(jax.tree.unflatten(structure, leaves), *args),
         name,
         (str(structure), closure),
         packages,
-        (leaves,),
+        (leaves, *fixed),
     )
