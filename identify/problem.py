@@ -336,28 +336,33 @@ class Problem:
         r = jnp.where(ok, robust.huber(z, huber), jnp.nan)
         return r, J * robust.huber_slope(z, huber)[:, None], motion[0], dmotion[0]
 
+    def _inputs(self, theta, t_end):
+        """The arguments of the residual and Jacobian programs after the frames: ``theta``, the
+        noise levels and the window up to ``t_end`` (None: all frames)."""
+        return (jnp.asarray(theta), self._noise(), *self._window(t_end))
+
     def residual(self, theta, t_end=None):
         """Weighted residuals (M * 3,) at ``theta`` over the frames up to ``t_end`` (None: all)."""
-        return self._residual(jnp.asarray(theta), self._noise(), *self._window(t_end))[0][: 3 * self.t.size]
+        return self._residual(*self._inputs(theta, t_end))[0][: 3 * self.t.size]
 
     def motion(self, theta, t_end):
         """Simulated planar poses (robot frame) every dt up to ``t_end`` (same compiled program)."""
-        m = self._residual(jnp.asarray(theta), self._noise(), *self._window(t_end))[1]
+        m = self._residual(*self._inputs(theta, t_end))[1]
         return np.asarray(m)[: int(round(t_end / self.scene.solver.dt)) + 1]
 
     def trace_motion(self, theta, t_end):
         """Trace the program of `residual` and `motion` for these arguments, without compiling it."""
-        self._residual.trace(jnp.asarray(theta), self._noise(), *self._window(t_end))
+        self._residual.trace(*self._inputs(theta, t_end))
 
     def residual_and_jacobian(self, theta, t_end=None):
-        r, J = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self._window(t_end))[:2]
+        r, J = self._residual_and_jacobian(*self._inputs(theta, t_end))[:2]
         return r[: 3 * self.t.size], J[: 3 * self.t.size]
 
     def frame(self, theta):
         """(values, Jacobian wrt theta) of the pattern frame's offset (2) and rotation (1), derived
         from the start pose and the model's pose at t = 0 (its tangents from the compiled
         Jacobian on the shortest window: a few steps)."""
-        _, _, m0, dm0 = self._residual_and_jacobian(jnp.asarray(theta), self._noise(), *self._window(0.0))
+        _, _, m0, dm0 = self._residual_and_jacobian(*self._inputs(theta, 0.0))
         f, d_m0, d_tc = (np.asarray(a) for a in self._frame(jnp.asarray(theta), m0))
         return f, np.concatenate([d_m0 @ np.asarray(dm0), d_tc], axis=1)
 

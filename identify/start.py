@@ -161,15 +161,19 @@ class Features:
             f"{f:.2f} Hz (decay {d:.3g}/s, {sh:.3g} m/rad)" for f, d, sh in zip(self.freq, self.decay, self.shape)
         )
 
+    def _theta(self, x, tau: float | None = None):
+        """The fit's parameters at log lengths ``x`` (None: theta's) and damping ``tau`` (None: theta's)."""
+        th = self.theta.copy() if tau is None else _set_damping(self.problem, self.theta, tau)
+        if x is not None:
+            th[self.i_len] = x
+        return th
+
     def simulated(self, x, tau: float | None = None):
         """(physical frequencies Hz, decays 1/s, strengths, shapes) of the model's free motion at
         log lengths ``x`` (None: theta's) and damping ``tau`` (None: theta's), the strongest
         first; None where the simulation fails."""
-        th = self.theta.copy() if tau is None else _set_damping(self.problem, self.theta, tau)
-        if x is not None:
-            th[self.i_len] = x
         dt = float(self.problem.scene.solver.dt)
-        m = self.problem.motion(th, self.t_from + SIMULATED)[int(round(self.t_from / dt)) :]
+        m = self.problem.motion(self._theta(x, tau), self.t_from + SIMULATED)[int(round(self.t_from / dt)) :]
         if not np.all(np.isfinite(m)):
             return None
         sub = max(1, int(round(1e-3 / dt)))  # about 1 kHz: modes up to a few hundred Hz
@@ -211,9 +215,7 @@ class Features:
         if self.actuated:
             self._shift.trace(jnp.asarray(x))
             return
-        th = self.theta.copy()
-        th[self.i_len] = x
-        self.problem.trace_motion(th, self.t_from + SIMULATED)
+        self.problem.trace_motion(self._theta(x), self.t_from + SIMULATED)
 
     def of_all(self, xs, warm=None) -> list:
         """`of` each of the log lengths ``xs`` (n, rods), on as many threads as there are cores.
