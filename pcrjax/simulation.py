@@ -251,7 +251,7 @@ def rollout(scene, active_steps=None, path=None, checkpoint: int | None = None, 
     forward mode (`numerics.few_inputs`): one exact Jacobian per step serves all directions,
     and reverse mode keeps those columns of the outputs it uses (under `jit`), not every step's
     intermediates. `jax.grad` of a scalar with respect to a rod's length and Young's modulus
-    then costs about 2.7 forward runs on Till's cantilever, against about 6 in reverse mode.
+    then costs about 3 forward runs on Till's cantilever, against about 5 in reverse mode.
     With more perturbed scalars (an actuator table, say), reverse mode is JAX's;
     ``forward_columns=0`` asks for it always.
 
