@@ -369,7 +369,7 @@ def _all_directions(values, leg, direction, tangents, carried):
     ``direction[i]`` (index arrays that broadcast together; direction C is padding, dropped).
     Directions neither integrated nor ``carried`` are zero; along segment k's ``carried[k]``
     (translations) every node and stage has the start tangent (``tangents`` (n M, C, dim)).
-    One gather from static indices: a scatter into zeros runs several times slower on XLA:CPU."""
+    One gather from static indices: XLA:CPU runs a scatter into zeros far slower."""
     nM, C = tangents.shape[:2]
     rest = values.shape[np.broadcast(leg, direction).ndim :]
     leg, direction = (np.ravel(a) for a in np.broadcast_arrays(leg, direction))
