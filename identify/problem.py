@@ -15,7 +15,11 @@ threshold is given: frames a decoding error threw far off weigh as little as the
 
 **Jacobians** come from `jax.jvp` through the whole rollout for the physical unknowns (each
 Newton solve differentiated implicitly, `pcrjax.numerics.newton.solve`) and from the camera model alone
-for the camera's unknowns.
+for the camera's unknowns. The implicit tangent of a step needs that step's exact Jacobian with
+every node's derivative, which costs several residuals; a recording is mostly the robot at rest
+or nearly so, where that Jacobian does not change, so the rollout holds it from step to step
+while the unknowns move less than `pcrjax.numerics.newton.HOLD_MOVE` from where it was taken
+(the solver's ``hold_tangent_jacobian``).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import copy
 import dataclasses
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -291,11 +296,14 @@ class Problem:
     def _split(self, theta):
         return theta[: self.n_physical], theta[self.n_physical :]
 
-    def _motion(self, theta_phys, theta_cam, active):
+    def _motion(self, theta_phys, theta_cam, active, hold=False):
         """(simulated planar poses (T, 3) sampled every dt, zeros after ``active`` steps; whether
-        every step's Newton solve converged)."""
+        every step's Newton solve converged). ``hold``: the forward tangents' step Jacobians are
+        held while the unknowns barely move (`newton.HOLD_MOVE`)."""
         vals = self.to_values(jnp.concatenate([theta_phys, theta_cam]))
         s = experiment.apply(self.scene, vals)
+        if hold:
+            s = eqx.tree_at(lambda q: q.solver, s, dataclasses.replace(s.solver, hold_tangent_jacobian=True))
         traj = pcrjax.rollout(s, active)
         return experiment.planar_pose(s, traj), jnp.all(traj.converged)
 
@@ -324,7 +332,8 @@ class Problem:
         w = mask[:, None] / sigma
         # tangents of the motion for the physical unknowns only
         motion, dmotion, ok = jax.vmap(
-            lambda v: jax.jvp(lambda x: self._motion(x, tc, active), (tp,), (v,), has_aux=True), out_axes=(None, -1, None)
+            lambda v: jax.jvp(lambda x: self._motion(x, tc, active, hold=True), (tp,), (v,), has_aux=True),
+            out_axes=(None, -1, None),
         )(jnp.eye(tp.size))
         # the camera is linear in the motion: push each tangent through it
         d_seen = jax.vmap(lambda dm: jax.jvp(lambda m: self._observe(m, tp, tc), (motion,), (dm,))[1], in_axes=-1, out_axes=-1)(

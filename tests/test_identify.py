@@ -989,6 +989,31 @@ def test_physical_jacobian_columns_are_the_finite_differences():
         assert np.max(np.abs(J[:, i] - fd)) < 1e-5 * np.max(np.abs(fd)), name
 
 
+def test_jacobian_holding_step_jacobians_at_rest_is_the_finite_differences():
+    """The fit's Jacobian holds each step's tangent Jacobian while the unknowns barely move
+    (`newton.HOLD_MOVE`): on an actuator step that rests, moves and settles (0.05 s at rest, the
+    step, 0.19 s after it), the physical columns against central differences of the residuals,
+    Richardson-extrapolated from steps 1e-4 and 5e-5: the lengths' plain differences carry an
+    error of 1.5e-3 to 4e-3 at 1e-4 that falls as the step squared; extrapolated, 2e-6 to 4e-6
+    (measured). A Jacobian held across a change of the step's scheme (the first step's backward
+    Euler) made these columns wrong by orders of magnitude."""
+    rec = load_recording(f"{DATA}/triskele_actuator_step.csv").window(0.25)
+    pb = Problem(rec, ("tau", "lengths")).refined(tol=1e-13)
+    th = np.asarray(pb.to_theta(pb.initial_values))
+    J = np.asarray(pb.residual_and_jacobian(th)[1])
+
+    def central(i, h):
+        e = np.zeros(th.size)
+        e[i] = h
+        return (np.asarray(pb.residual(th + e)) - np.asarray(pb.residual(th - e))) / (2 * h)
+
+    for i, name in enumerate(pb.labels()[: pb.n_physical]):
+        fd = (4.0 * central(i, 5e-5) - central(i, 1e-4)) / 3.0
+        assert np.max(np.abs(fd)) > 1.0, name  # the recording sees it
+        print(name, np.max(np.abs(J[:, i] - fd)) / np.max(np.abs(fd)))
+        assert np.max(np.abs(J[:, i] - fd)) < 1e-5 * np.max(np.abs(fd)), name
+
+
 def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
     """``pcrjax-identify --fit tau,youngs_modulus`` end to end on a small case (the default run):
     a 0.2 s cantilever recording at 1 kHz, its E drawn at random within 10 % of the scene's and

@@ -380,7 +380,17 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
     )
 
 
-def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, homotopy=None, has_aux=False, aux_tangents=None):
+def solve(
+    fn,
+    jac_fn,
+    jac0: Jacobian,
+    settings: NewtonSettings,
+    stages: Stages,
+    homotopy=None,
+    has_aux=False,
+    aux_tangents=None,
+    held=None,
+):
     """Root of ``fn`` with implicit differentiation; returns ``(x, Jacobian, Stats)``.
 
     ``jac_fn(x)`` gives the exact Jacobian of ``fn`` at ``x``; it serves the forward Newton and,
@@ -410,6 +420,13 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
     tangent, so no second pass through ``fn`` is made: along the legs, the Jacobian's own
     integration gives every node's tangent (`_implicit_with_aux`).
 
+    ``held`` (with ``aux_tangents``; forward mode): ``(Jacobians, unknowns)``, what
+    ``jac_aux_fn`` gave at those unknowns on an earlier solve of a like problem. The tangent
+    solve takes them instead of evaluating ``jac_aux_fn`` at the root while the root lies within
+    ``HOLD_MOVE`` (max-norm) of those unknowns (NaN unknowns: never), and the solve returns
+    ``(x, Jacobian, Stats, aux, held)`` with what the next solve may hold: a rollout at rest
+    needs the exact Jacobian once, not at every step (`_implicit_with_aux_held`).
+
     Under `jax.vmap` the solve runs as one batched loop (`_batched`) that evaluates Jacobians
     only when some member needs one; each member's iterates are those of its own solve.
     """
@@ -431,6 +448,9 @@ def solve(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages: Stages, 
         if homotopy is not None or not has_aux:
             raise ValueError("aux_tangents needs has_aux and no homotopy")
         ja_conv, ja_consts = jax.closure_convert(aux_tangents[0], x0)
+        if held is not None:
+            x, aux, held = _implicit_with_aux_held(f_conv, ja_conv, aux_tangents[1], x, aux, fixed(held), f_consts, ja_consts)
+            return x, jac, stats, aux, held
         x, aux = _implicit_with_aux(f_conv, j_conv, ja_conv, aux_tangents[1], x, aux, f_consts, j_consts, ja_consts)
         return x, jac, stats, aux
     x = _implicit(_residual_of(f_conv) if has_aux else f_conv, j_conv, x, f_consts, j_consts)
@@ -543,3 +563,37 @@ def _implicit_with_aux_jvp(f_conv, j_conv, ja_conv, aux_tangent, primals, tangen
     dx = -solve_once(Jm, rhs)
     daux = jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
     return (x, aux), (dx, daux)
+
+
+# A held tangent Jacobian serves while the unknowns (scaled) moved less than this since it was
+# taken: there the step Jacobian changes far less than the 1e-3 a fit's Jacobian needs.
+HOLD_MOVE = 1e-6
+
+
+def _refreshed(ja_conv, x, held, ja_consts):
+    """``held`` = (exact Jacobian and legs' Jacobians, the unknowns where they were taken), taken
+    again at ``x`` where the unknowns moved more than ``HOLD_MOVE`` since (or never were)."""
+    tj, x_held = held
+    need = ~(jnp.max(jnp.abs(x - x_held)) <= HOLD_MOVE)
+    tj = jax.lax.cond(need, lambda: ja_conv(x, *ja_consts), lambda: tj)
+    return tj, jnp.where(need, x, x_held)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _implicit_with_aux_held(f_conv, ja_conv, aux_tangent, x, aux, held, f_consts, ja_consts):
+    """`_implicit_with_aux` whose tangent solve takes the Jacobians ``held`` from an earlier step
+    while the unknowns stayed within ``HOLD_MOVE`` of where they were taken; returns ``(x, aux,
+    held)`` for the next step."""
+    return x, aux, _refreshed(ja_conv, x, held, ja_consts)
+
+
+@_implicit_with_aux_held.defjvp
+def _implicit_with_aux_held_jvp(f_conv, ja_conv, aux_tangent, primals, tangents):
+    x, aux, held, f_consts, ja_consts = primals
+    df_consts = tangents[3]
+    x, aux, held = _implicit_with_aux_held(f_conv, ja_conv, aux_tangent, *primals)
+    Jm, aux_jac = held[0]
+    _, (rhs, daux_inputs) = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
+    dx = -solve_once(Jm, rhs)
+    daux = jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
+    return (x, aux, held), (dx, daux, jax.tree.map(jnp.zeros_like, held))

@@ -49,6 +49,7 @@ class Solver(eqx.Module):
     refine: int = eqx.field(static=True, default=1)
     continuation: int = eqx.field(static=True, default=10)  # load/geometry continuation stages of the static solve
     auto_segments: bool = eqx.field(static=True, default=True)
+    hold_tangent_jacobian: bool = eqx.field(static=True, default=False)  # forward tangents: `newton.HOLD_MOVE`
     newton: NewtonSettings = NewtonSettings()
 
     @property

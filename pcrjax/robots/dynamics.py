@@ -13,6 +13,7 @@ each step), it is retried from the last step's solution with a fresh Jacobian.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 
 import equinox as eqx
@@ -39,6 +40,7 @@ class StepState(eqx.Module):
     jac: newton.Jacobian
     has_jac: jnp.ndarray
     started: jnp.ndarray  # False before the first step (backward Euler: `bdf_alpha.starting`)
+    held: tuple | None = None  # the tangent solve's Jacobians and where taken (`newton.HOLD_MOVE`), if the solver holds them
 
 
 class StepOutput(eqx.Module):
@@ -75,7 +77,7 @@ def initial_step_state(scene, static: StaticSolution, inverse_dynamics: bool = F
     else:
         xp = scene.end.pose_unknowns(static.position, static.rotation, static.position, static.rotation, scene.effects.planar, sc)
         x = assembly.unknowns(lay, sc, xp, nodes)
-    return StepState(
+    state = StepState(
         nodes=nodes,
         z_prev=z,
         history=history,
@@ -87,6 +89,11 @@ def initial_step_state(scene, static: StaticSolution, inverse_dynamics: bool = F
         has_jac=jnp.asarray(False),
         started=jnp.asarray(False),
     )
+    if inverse_dynamics or not s.hold_tangent_jacobian:
+        return state
+    shapes = jax.eval_shape(lambda: _Forward(scene, state, jnp.zeros(()), co).prob.jacobian_and_legs(x))
+    never = (jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes), jnp.full_like(x, jnp.nan))
+    return dataclasses.replace(state, held=never)
 
 
 def _inverse_unknowns(lay, sc, nodes, xa):
@@ -174,7 +181,7 @@ def step(scene, state: StepState, t, path=None):
     x1, x2 = state.unknowns[0], state.unknowns[1]
     guess = jax.lax.stop_gradient(2.0 * x1 - x2)
     start = newton.with_restart(guess, x1, ~state.has_jac)
-    x, jac, stats, legs_at_root = newton.solve(
+    solved = newton.solve(
         lambda z: form.prob.residual(z, True),
         form.prob.jacobian,
         state.jac,
@@ -182,7 +189,12 @@ def step(scene, state: StepState, t, path=None):
         start,
         has_aux=True,
         aux_tangents=form.aux_tangents(),
+        held=state.held if path is None else None,
     )
+    x, jac, stats, legs_at_root = solved[:4]
+    held = solved[4] if len(solved) > 4 else None
+    if held is not None:  # the first step's scheme (backward Euler) is not the next steps': nothing held from it
+        held = (held[0], jnp.where(state.started, held[1], jnp.nan))
     prob, body, xl, a = form.solution(x)
     tips, nodes, stages = form.legs(prob, xl, legs_at_root)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co_next, h, k, scene.effects, nd, st, zp, co)  # noqa: E731
@@ -203,6 +215,7 @@ def step(scene, state: StepState, t, path=None):
         jac=jax.lax.stop_gradient(jac),
         has_jac=jnp.asarray(True),
         started=jnp.asarray(True),
+        held=held,
     )
     energy = _rods_energy(scene, prob, nodes, z) + end_energy
     out = StepOutput(
