@@ -558,11 +558,17 @@ def _implicit_with_aux_jvp(f_conv, j_conv, ja_conv, aux_tangent, primals, tangen
         dx = -solve_once(j_conv(x, *j_consts), rhs)
         _, (_, daux) = jax.jvp(lambda z, c: f_conv(z, *c), (x, list(f_consts)), (dx, list(df_consts)))
         return (x, aux), (dx, daux)
-    Jm, aux_jac = ja_conv(x, *ja_consts)
+    dx, daux = _root_and_aux_tangents(f_conv, aux_tangent, x, f_consts, df_consts, *ja_conv(x, *ja_consts))
+    return (x, aux), (dx, daux)
+
+
+def _root_and_aux_tangents(f_conv, aux_tangent, x, f_consts, df_consts, Jm, aux_jac):
+    """(the root's tangent, the aux's) from the exact Jacobian ``Jm`` at the root and what
+    ``aux_tangent`` needs (``aux_jac``): the inputs' pass gives the right-hand side and the aux's
+    own part, the root's tangent the rest (`solve`'s ``aux_tangents``)."""
     _, (rhs, daux_inputs) = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
     dx = -solve_once(Jm, rhs)
-    daux = jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
-    return (x, aux), (dx, daux)
+    return dx, jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
 
 
 # A held tangent Jacobian serves while the unknowns (scaled) moved less than this since it was
@@ -592,8 +598,5 @@ def _implicit_with_aux_held_jvp(f_conv, ja_conv, aux_tangent, primals, tangents)
     x, aux, held, f_consts, ja_consts = primals
     df_consts = tangents[3]
     x, aux, held = _implicit_with_aux_held(f_conv, ja_conv, aux_tangent, *primals)
-    Jm, aux_jac = held[0]
-    _, (rhs, daux_inputs) = jax.jvp(lambda c: f_conv(x, *c), (list(f_consts),), (list(df_consts),))
-    dx = -solve_once(Jm, rhs)
-    daux = jax.tree.map(jnp.add, daux_inputs, aux_tangent(aux_jac, dx))
+    dx, daux = _root_and_aux_tangents(f_conv, aux_tangent, x, f_consts, df_consts, *held[0])
     return (x, aux, held), (dx, daux, jax.tree.map(jnp.zeros_like, held))

@@ -194,7 +194,7 @@ def step(scene, state: StepState, t, path=None):
     x, jac, stats, legs_at_root = solved[:4]
     held = solved[4] if len(solved) > 4 else None
     if held is not None:  # the first step's scheme (backward Euler) is not the next steps': nothing held from it
-        held = (held[0], jnp.where(state.started, held[1], jnp.nan))
+        held = jax.lax.stop_gradient((held[0], jnp.where(state.started, held[1], jnp.nan)))
     prob, body, xl, a = form.solution(x)
     tips, nodes, stages = form.legs(prob, xl, legs_at_root)
     after = lambda h, k, nd, st, zp: rod_history.after_step(co_next, h, k, scene.effects, nd, st, zp, co)  # noqa: E731
