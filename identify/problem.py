@@ -28,7 +28,6 @@ import copy
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -303,7 +302,7 @@ class Problem:
         vals = self.to_values(jnp.concatenate([theta_phys, theta_cam]))
         s = experiment.apply(self.scene, vals)
         if hold:
-            s = eqx.tree_at(lambda q: q.solver, s, dataclasses.replace(s.solver, hold_tangent_jacobian=True))
+            s = dataclasses.replace(s, solver=dataclasses.replace(s.solver, hold_tangent_jacobian=True))
         traj = pcrjax.rollout(s, active)
         return experiment.planar_pose(s, traj), jnp.all(traj.converged)
 

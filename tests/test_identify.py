@@ -967,6 +967,20 @@ def test_platform_mass_scales_the_platform_modes_by_its_square_root():
         Problem(load_recording(f"{DATA}/cantilever_release.csv"), ("tau", "platform_mass"))
 
 
+def _central_difference(pb, th, i, h):
+    """Central difference of ``pb``'s residuals along unknown ``i`` with step ``h``."""
+    e = np.zeros(th.size)
+    e[i] = h
+    return (np.asarray(pb.residual(th + e)) - np.asarray(pb.residual(th - e))) / (2 * h)
+
+
+def _assert_column_is(J, fd, i, name):
+    """Jacobian column ``i`` equals the differences ``fd`` to 1e-5 of their largest, which the recording sees."""
+    assert np.max(np.abs(fd)) > 1.0, name  # the recording sees it
+    print(name, np.max(np.abs(J[:, i] - fd)) / np.max(np.abs(fd)))
+    assert np.max(np.abs(J[:, i] - fd)) < 1e-5 * np.max(np.abs(fd)), name
+
+
 def test_physical_jacobian_columns_are_the_finite_differences():
     """Every physical unknown's Jacobian column (forward tangents through the rollout, each
     Newton solve differentiated implicitly), E, the platform mass and the released push among
@@ -981,12 +995,7 @@ def test_physical_jacobian_columns_are_the_finite_differences():
     assert J.shape == (3 * rec.frames, th.size)
     for i, name in enumerate(pb.labels()[: pb.n_physical]):
         h = 1e-2 if name.split("[")[0] in LINEAR else 1e-4  # the push: the unknowns the motion is nearly linear in
-        e = np.zeros(th.size)
-        e[i] = h
-        fd = (np.asarray(pb.residual(th + e)) - np.asarray(pb.residual(th - e))) / (2 * h)
-        assert np.max(np.abs(fd)) > 1.0, name  # the recording sees it
-        print(name, np.max(np.abs(J[:, i] - fd)) / np.max(np.abs(fd)))
-        assert np.max(np.abs(J[:, i] - fd)) < 1e-5 * np.max(np.abs(fd)), name
+        _assert_column_is(J, _central_difference(pb, th, i, h), i, name)
 
 
 def test_jacobian_holding_step_jacobians_at_rest_is_the_finite_differences():
@@ -1001,17 +1010,9 @@ def test_jacobian_holding_step_jacobians_at_rest_is_the_finite_differences():
     pb = Problem(rec, ("tau", "lengths")).refined(tol=1e-13)
     th = np.asarray(pb.to_theta(pb.initial_values))
     J = np.asarray(pb.residual_and_jacobian(th)[1])
-
-    def central(i, h):
-        e = np.zeros(th.size)
-        e[i] = h
-        return (np.asarray(pb.residual(th + e)) - np.asarray(pb.residual(th - e))) / (2 * h)
-
     for i, name in enumerate(pb.labels()[: pb.n_physical]):
-        fd = (4.0 * central(i, 5e-5) - central(i, 1e-4)) / 3.0
-        assert np.max(np.abs(fd)) > 1.0, name  # the recording sees it
-        print(name, np.max(np.abs(J[:, i] - fd)) / np.max(np.abs(fd)))
-        assert np.max(np.abs(J[:, i] - fd)) < 1e-5 * np.max(np.abs(fd)), name
+        fd = (4.0 * _central_difference(pb, th, i, 5e-5) - _central_difference(pb, th, i, 1e-4)) / 3.0
+        _assert_column_is(J, fd, i, name)
 
 
 def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
