@@ -98,6 +98,14 @@ by 2**order) and fits the whole recording at once, falling back to the windows f
 optimum if that fails. A refit that ends at a reduced chi-square more than ``WORSE`` times the
 fit's found no optimum: it is reported as failed and its values are not used.
 
+**Two cores.** A refit runs one program at a time, on one core. Two refits whose starts are
+known in advance run side by side (`identify.threads`): the first time refit (the fit's nodes,
+half its dt, from its answer) beside the tolerance and space refits, used where the space chain
+settles at its first refit (else dropped: the time chain starts on a finer grid); and the
+start's refit on the grid the time chain will end on (below) beside the chain's last refit,
+used where the start then contests the answer there. A refit run ahead keeps its progress lines
+until it is used, so that they do not interleave with the others'.
+
 **The internal grid.** pcrjax refines a rod's internal grid (``solver.grid_nodes``, nodes times
 ``solver.refine``) as dt shrinks, to resolve the dynamic step's boundary layer: the cantilever
 at 20 nodes runs on 40 from dt 0.25 ms, the Triskele at 10 nodes on 20 from dt 62.5 us. A time
@@ -142,12 +150,13 @@ errors) and refitted the start to an optimum worse than the answer's.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 
 import numpy as np
 
 from . import result as result_module
-from . import robust
+from . import robust, threads
 from .least_squares import FitError, decrement, levenberg_marquardt
 
 THIRD = 1.0 / 3.0  # a move below this fraction of the standard error is negligible beside it
@@ -406,6 +415,59 @@ def noise_and_errors(problem, J, fine, r, p: int) -> tuple[np.ndarray, np.ndarra
     return noise, np.sqrt(np.maximum(np.diag(cov), 1e-300))
 
 
+def _announce(what, n, h, tol) -> str:
+    return f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tol:.0e} ({what} error) ..."
+
+
+class _Cancelled(Exception):
+    """Raised in a refit run ahead (`_Ahead`) that is no longer wanted, at its next iteration."""
+
+
+class _Ahead:
+    """``job(progress)`` on a thread of its own while the caller goes on: its progress is kept and
+    told to ``progress`` when its result is taken (so that it does not interleave with the
+    caller's); `cancel` stops it at its next iteration, without waiting for it."""
+
+    def __init__(self, job, progress, grid=None):
+        self.grid = grid  # (nodes, dt) of the refit, where it matters to the caller
+        self._told, self._progress, self._outcome = [], progress, None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(job,), daemon=True)
+        self._thread.start()
+
+    def _tell(self, *line):
+        if self._stop.is_set():
+            raise _Cancelled
+        self._told.append(line)
+
+    def _run(self, job):
+        try:
+            self._outcome = (job(self._tell), None)
+        except _Cancelled:
+            pass
+        except Exception as e:  # raised in the caller, where the result is taken
+            self._outcome = (None, e)
+
+    def result(self):
+        self._thread.join()
+        value, error = self._outcome
+        if error is not None:
+            raise error
+        for line in self._told if self._progress is not None else ():
+            self._progress(*line)
+        return value
+
+    def cancel(self):
+        self._stop.set()
+
+
+def _drop(ahead):
+    """Cancel ``ahead`` (an `_Ahead` or None); returns None."""
+    if ahead is not None:
+        ahead.cancel()
+    return None
+
+
 def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 1.0, window_ends=(None,), rivals=()):
     """(the `Level` list: the tolerance refit first, then the space refits, then the time
     refits; the notes: a refit that failed ends the list) for the fit ``problem`` at its
@@ -423,9 +485,10 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
     levels, notes = [], []
     say = _messages(progress)
 
-    def refit(what, n, h, base, windows, parent, predicted=None):
+    def attempt(what, n, h, base, windows, predicted=None, progress=progress):
+        """("ok", what `record` needs) or ("failed", the note saying why) of the refit to ``n``
+        nodes and ``dt`` h from ``base``."""
         t0 = time.perf_counter()
-        say(f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tl:.0e} ({what} error) ...")
         fine = problem.refined(nodes=n, dt=h, tol=tl)
         # over the whole recording at once from the predicted optimum, or from the coarser one
         # where the fit's Jacobian puts this grid's optimum within reach (`_near`); else (or if
@@ -442,11 +505,20 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
                 fine, tries, J, m, chi2, 0 if what == "tolerance" else REFRESH, progress
             )
         except FitError as e:  # the fit's answer stands; the refit's failure is reported with it
-            notes.append(f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} {e}, so its {what} error is not measured")
-            return None
+            why = f"the refit with {n} nodes, dt {h:.3g} s, tolerance {tl:.0e} {e}, so its {what} error is not measured"
+            return "failed", why
         noise, se = noise_and_errors(problem, J, fine, r, theta.size)
+        return "ok", (fine, th, r, iterations, jacobians, distance, noise, se, time.perf_counter() - t0)
+
+    def record(what, n, h, base, parent, outcome):
+        """The refit's `Level` appended (None where it failed: its note appended)."""
+        kind, found = outcome
+        if kind == "failed":
+            notes.append(found)
+            return None
+        fine, th, r, iterations, jacobians, distance, noise, se, wall = found
         levels.append(
-            Level(what, n, h, tl, th, (th - base) / se, float(r @ r) / max(m, 1), iterations, time.perf_counter() - t0, noise, se,
+            Level(what, n, h, tl, th, (th - base) / se, float(r @ r) / max(m, 1), iterations, wall, noise, se,
                   fine, parent, jacobians, distance)
         )  # fmt: skip
         if distance is not None and distance > STILL:
@@ -457,11 +529,23 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         say(f"  largest move {np.max(np.abs(levels[-1].move_se)):.3g} SE, reduced chi-square {levels[-1].chi2:.4g}")
         return levels[-1]
 
+    def refit(what, n, h, base, windows, parent, predicted=None):
+        say(_announce(what, n, h, tl))
+        return record(what, n, h, base, parent, attempt(what, n, h, base, windows, predicted))
+
     def grid(i):
         return _grid(problem, levels, i)
 
     base = np.asarray(theta, float)
+    # The first time refit (half the fit's dt, at its nodes, from its answer) is the one the time
+    # chain starts with wherever the space chain settles at its first refit, as it mostly does:
+    # it runs beside the tolerance and space refits, on the core they leave idle.
+    ahead = None
+    if max_levels > 0 and threads.WORKERS > 1:
+        ahead = _Ahead(lambda told, start=base: attempt("time", nodes, dt / 2, start, window_ends, progress=told), progress)
+        say(_announce("time", nodes, dt / 2, tl) + " (beside the refits below; its progress when they are done)")
     if refit("tolerance", nodes, dt, base, (None,), None) is None:
+        _drop(ahead)
         return levels, notes
     n, h, parent = nodes, dt, None  # the grid refinements start from the fit's own optimum
     # the space error left at the time chain's nodes, where the space chain settled (theta: its
@@ -474,11 +558,16 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
         return space_error if g0 is None else space_error * _left_on(g0, grid(i))
 
     for what in ("space", "time"):
-        step, prev = None, None  # the chain's last move (theta) and its last level
+        step, prev, chain_start = None, None, len(levels)  # the chain's last move (theta), its last level, its first
         for _ in range(max_levels):
             predicted = None if step is None else base + step / 2 ** ORDER[what]
-            lv = refit(what, *((2 * n, h) if what == "space" else (n, h / 2)), base, window_ends, parent, predicted)
+            if what == "time" and ahead is not None and parent is None:  # the refit that ran beside the others
+                say(_announce(what, n, h / 2, tl) + " (ran beside the refits above)")
+                lv, ahead = record(what, n, h / 2, base, parent, ahead.result()), None
+            else:
+                lv = refit(what, *((2 * n, h) if what == "space" else (n, h / 2)), base, window_ends, parent, predicted)
             if lv is None:
+                _drop(ahead)
                 return levels, notes
             if what == "time" and grid(len(levels) - 1) != grid(parent):
                 # the time move without the space move it holds: the values corrected for the
@@ -500,16 +589,73 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             if settled and what == "space":
                 space_error, g0 = _space_error(lv.theta - base), grid(parent)
                 break
+            if what == "space":  # the time chain will start on a finer grid than the refit beside
+                ahead = _drop(ahead)
             n, h, step, base, parent = lv.nodes, lv.dt, lv.theta - base, lv.theta, len(levels) - 1
             if settled:
                 break
-    for start in rivals:
-        if _contest(problem, levels, notes, np.asarray(start, float), J, chi2, m, progress, window_ends, left):
+            if what == "time" and len(levels) - chain_start == max_levels - 1:  # the next refit is the chain's last
+                ahead = _rival_ahead(problem, levels, rivals, lv, tl, chi2, m, window_ends, progress)
+    for k, start in enumerate(rivals):
+        contested = _contest(
+            problem, levels, notes, np.asarray(start, float), J, chi2, m, progress, window_ends, left, ahead if k == 0 else None
+        )
+        if contested:
             break
+    _drop(ahead)
     return levels, notes
 
 
-def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, left=lambda i: 0.0) -> bool:
+def _away(problem, start, level) -> float:
+    """The largest distance of ``start`` from ``level``'s values in a measured parameter, in the
+    level's standard errors."""
+    return float(np.max(np.abs((start - level.theta) / level.se)[problem.measured]))
+
+
+def _rival(problem, fine, start, anchor, answer, chi2, m, window_ends, progress):
+    """The refit of ``start`` on ``fine``'s grid (`_contest`): (kind, the loss after its push and
+    camera are fitted, wall time, found). Its measured values are the start's, its push and camera
+    ``anchor``'s (an answer's), fitted (`Problem.fit_linear`: from the sidecar's push and the first
+    frame, the start's loss was 300x the answer's on r1). Kind "weak" where that loss is more than
+    ``WORSE`` times ``answer`` (found None); "failed" where the refit fails (found: the note);
+    else "ok", found (fine, theta, residuals, iterations, Jacobians, the fit model's Jacobian at
+    the start)."""
+    t0 = time.perf_counter()
+    start, cost = fine.fit_linear(np.where(problem.measured, start, anchor))
+    if not cost <= WORSE * answer:
+        return "weak", cost, time.perf_counter() - t0, None
+    held = np.asarray(problem.residual_and_jacobian(start)[1])
+    # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
+    tries = [(start, (None,), None)] + ([(start, window_ends, None)] if len(window_ends) > 1 else [])
+    try:
+        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2, progress=progress)
+    except FitError as e:
+        return "failed", cost, time.perf_counter() - t0, f"the refit from the start on the finest grid {e}"
+    return "ok", cost, time.perf_counter() - t0, (fine, th, r, it, jac, held)
+
+
+def _rival_ahead(problem, levels, rivals, lv, tol, chi2, m, window_ends, progress):
+    """`_rival` of the first of ``rivals`` on the grid that the time refit after ``lv`` will
+    reach, run beside that refit (an `_Ahead`, or None): where the start lies more than
+    ``RIVAL_SE`` standard errors from ``lv`` and from the fit (`_contest` contests only then)."""
+    if not rivals or threads.WORKERS < 2:
+        return None
+    start = np.asarray(rivals[0], float)
+    if min(_away(problem, start, lv), _away(problem, start, levels[0])) <= RIVAL_SE:
+        return None
+    n, h = lv.nodes, lv.dt / 2
+
+    def job(told):
+        fine = problem.refined(nodes=n, dt=h, tol=tol)
+        return _rival(problem, fine, start, lv.theta, 0.5 * lv.chi2 * m, chi2, m, window_ends, told)
+
+    _messages(progress)(
+        f"the start lies in another basin than this answer: its refit with {n} nodes, dt {h:.3g} s runs beside the next"
+    )
+    return _Ahead(job, progress, grid=(n, h))
+
+
+def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, left=lambda i: 0.0, ahead=None) -> bool:
     """Whether ``start`` (theta: where the fit began) takes the answer over from the chain's
     (`refine`'s module text, "Rival basins"). It contests only where the fit's grid led more than
     ``RIVAL_SE`` standard errors away from it and the chain's answer lies that far from it too.
@@ -525,34 +671,31 @@ def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, l
     say = _messages(progress)
     last = levels[-1]
     if last.what != "time":
+        _drop(ahead)
         return False
-
-    def away(level):  # the start's distance from a level's values, in its standard errors
-        return np.max(np.abs((start - level.theta) / level.se)[problem.measured])
-
-    far = away(last)
+    far = _away(problem, start, last)
     # where the fit ended within RIVAL_SE of the start (levels[0]: the fit's grid), the fit's grid
     # kept the start's basin and the chains followed that basin to the finest grid
-    if far <= RIVAL_SE or away(levels[0]) <= RIVAL_SE:
+    if far <= RIVAL_SE or _away(problem, start, levels[0]) <= RIVAL_SE:
+        _drop(ahead)
         return False
     t0 = time.perf_counter()
-    fine = last.problem
     say(f"the start, {far:.3g} standard errors from the answer: refit with {last.nodes} nodes, dt {last.dt:.3g} s ...")
-    # the start's measured values with the answer's push and camera, which a linear fit then adjusts
-    # (from the sidecar's push and the first frame, the start's were 300x the answer's loss on r1)
-    start, cost = fine.fit_linear(np.where(problem.measured, start, last.theta))
     answer = 0.5 * last.chi2 * m
-    if not cost <= WORSE * answer:
-        say(f"  its loss {cost:.6g} against the answer's {answer:.6g}: not a rival")
+    outcome = ahead.result() if ahead is not None and ahead.grid == (last.nodes, last.dt) else None
+    if outcome is None or (outcome[0] == "weak") != (outcome[1] > WORSE * answer):  # not run, or run for another answer
+        _drop(ahead)
+        outcome = _rival(problem, last.problem, start, last.theta, answer, chi2, m, window_ends, progress)
+    else:  # run beside the last time refit: its own time
+        t0 = time.perf_counter() - outcome[2]
+    kind, linear, _, found = outcome
+    if kind == "weak":
+        say(f"  its loss {linear:.6g} against the answer's {answer:.6g}: not a rival")
         return False
-    held = np.asarray(problem.residual_and_jacobian(start)[1])
-    # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
-    tries = [(start, (None,), None)] + ([(start, window_ends, None)] if len(window_ends) > 1 else [])
-    try:
-        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2, progress=progress)
-    except FitError as e:
-        notes.append(f"the refit from the start on the finest grid {e}")
+    if kind == "failed":
+        notes.append(found)
         return False
+    fine, th, r, it, jac, held = found
     cost = 0.5 * float(r @ r)
     noise, se = noise_and_errors(problem, J, fine, r, start.size)
     levels.append(

@@ -132,19 +132,21 @@ def test_a_time_refit_on_a_finer_internal_grid_is_reported():
     assert not notes
 
 
+class Nuisance(Linear):
+    """`Linear` whose grids move only the last unknown, a nuisance parameter."""
+
+    def __init__(self, nodes, dt, offset=lambda dt: 0.0):
+        super().__init__(nodes, dt, offset)
+        self.A = A0 @ (np.eye(UNKNOWNS) + np.diag([0.0, 0.0, 5.0 / nodes + 5.0 * dt]))
+        self.measured = np.array([True, True, False])
+
+    def refined(self, nodes, dt, tol):
+        return Nuisance(nodes, dt)
+
+
 def test_only_the_measured_parameters_decide_the_refinement():
     """A grid that moves only a nuisance parameter (the push, the camera) by many standard
     errors: each chain stops after one refinement, the move still recorded."""
-
-    class Nuisance(Linear):
-        def __init__(self, nodes, dt, offset=lambda dt: 0.0):
-            super().__init__(nodes, dt, offset)
-            self.A = A0 @ (np.eye(UNKNOWNS) + np.diag([0.0, 0.0, 5.0 / nodes + 5.0 * dt]))
-            self.measured = np.array([True, True, False])
-
-        def refined(self, nodes, dt, tol):
-            return Nuisance(nodes, dt)
-
     coarse = Nuisance(10, 0.1)
     theta, chi2, se = _start(coarse)
     levels, failed = discretisation.refine(coarse, theta, coarse.A / SIGMA, max_levels=2, chi2=chi2)
@@ -710,3 +712,31 @@ def test_a_space_chain_settled_by_its_last_move_takes_the_space_part_out_of_the_
     got = np.append(rep.values["a"], rep.values["b"])
     err = np.append(rep.discretisation_errors["a"], rep.discretisation_errors["b"])
     assert np.all(np.abs(got - limit) <= err + 0.05 * se), ((got - limit) / se, err / se)
+
+
+@pytest.mark.parametrize("case", ["space settles at once", "space chain goes on", "a rival takes over"])
+def test_refits_run_side_by_side_give_the_levels_of_one_core(case, monkeypatch):
+    """On two cores the first time refit runs beside the tolerance and space refits, and the
+    start's refit on the finest grid beside the last time refit; each is used only where the
+    chains then ask for it. The levels and notes equal one core's, where nothing runs ahead: a
+    refit run ahead and used (the space chain settling at once; the rival), one dropped (the
+    space chain going on, the time chain then starting on a finer grid)."""
+
+    def run():
+        if case == "a rival takes over":
+            rep = _two_basins_report(flips=True)[2]
+            return [(r["refit"], r["nodes"], r["dt"], r["values"]["x"]) for r in rep.refinements], rep.message
+        if case == "space settles at once":
+            coarse = Nuisance(10, 0.1)
+        else:
+            coarse = Linear(10, 0.1)
+        theta, chi2, _ = _start(coarse)
+        levels, notes = discretisation.refine(coarse, theta, coarse.A / SIGMA, max_levels=2, chi2=chi2)
+        return [(lv.what, lv.nodes, lv.dt, lv.parent, lv.theta.tolist()) for lv in levels], notes
+
+    two = run()
+    monkeypatch.setattr(discretisation.threads, "WORKERS", 1)
+    one = run()
+    assert two == one
+    whats = [lv[0] for lv in one[0]]
+    assert whats[:2] == ["tolerance", "space"] and "time" in whats, whats
