@@ -125,8 +125,11 @@ def test_triskele_settles_to_statics_after_actuator_step():
 
 def test_triskele_energy_conserved_by_trapezoid_and_dissipated_otherwise():
     # Push-and-release, no damping. BDF-alpha sees a load released between t = 0 and the first
-    # step as ramped off over that step, so energy is measured from the first step on.
-    sc = triskele(nodes=20, alpha=-0.5, duration=2.0)
+    # step as ramped off over that step, so energy is measured from the first step on. The
+    # dissipated energy falls to 2e-13 of its start over the 2 s; the default Newton tolerance
+    # (1e-10) leaves the solution off by enough that the energy rises by 1e-12 of its start near
+    # 1e-11 of it, so the solve is made 100 times tighter for a monotonic claim that far down.
+    sc = triskele(nodes=20, alpha=-0.5, duration=2.0, tol=1e-12)
     tr = pcrjax.simulate(sc)
     E = np.asarray(tr.energy)[1:]
     dev = np.abs(E / E[0] - 1).max()
