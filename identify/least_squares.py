@@ -72,7 +72,10 @@ def levenberg_marquardt(
     problem could still gain; ``0.5 (delta / SE)^2`` for a parameter ``delta`` off a quadratic
     optimum) falls below ``ftol`` times the cost, when a step moves theta by less than
     ``xtol``, or when no damped step lowers the cost (the optimum to the precision of the model's
-    solves). A small gain of one step alone is no sign of convergence (a crawl has those).
+    solves; or none is left that moves theta by ``xtol``, which is not tried). Each damped step
+    tried differs from the last rejected one by a tenth of its size at least (`_same_step`); the
+    damping falls tenfold after a step whose first trial passed, and stays after one that passed
+    only with more. A small gain of one step alone is no sign of convergence (a crawl has those).
 
     Steps are bounded to ``max_step`` (a number, or one per unknown: they are O(1), logs and
     typical units), a trust region that keeps the first steps from a poor guess out of far minima. ``start`` (a
@@ -151,13 +154,20 @@ def levenberg_marquardt(
             it -= 1
             break
         g, model, scale = hessian_model()
-        accepted = False
+        accepted, rejected = False, None
         for _ in range(12):
             step = _damped_step(model, scale, g, lam)
             # raise the damping until the step fits the region (and the model is definite)
             while (step is None or np.any(np.abs(step) > max_step)) and lam < 1e30:
                 lam *= 4.0
                 step = _damped_step(model, scale, g, lam)
+            # and until it differs from the step last rejected, which it would repeat
+            while step is not None and _same_step(step, rejected) and lam < 1e30:
+                lam *= 2.0
+                step = _damped_step(model, scale, g, lam)
+            if step is not None and exact and np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta))):
+                break  # damped below xtol: no step left to try (the `small` test)
+            damped = step
             if step is not None and geodesic and exact:
                 step = _accelerated(rf, theta, r, J, step, model + lam * scale, scale, max_step)
             if step is not None:
@@ -168,19 +178,24 @@ def levenberg_marquardt(
                     break
             if not exact:  # the secant Jacobian may be what failed: the exact one, same damping
                 take_exact()
+                rejected = None
                 if geodesic:  # exact Jacobians from here
                     secant = False
                 g, model, scale = hessian_model()
                 continue
             if step is None:  # no damping makes the model definite (a non-finite Jacobian): no step to try
                 break
+            rejected = damped
             lam *= 10.0
         if not accepted:
             converged = True  # no decrease along any damped step: a minimum to the precision of the model
             it -= 1
             break
         theta = theta + step
-        lam = max(lam / 10.0, 1e-12)
+        if rejected is None:  # the first damping passed: less of it next time
+            lam = max(lam / 10.0, 1e-12)
+        # else the damping that passed is kept: lowered again, it fails again and costs a rollout
+        # each iteration (a held Jacobian's crawl through a window alternated the two)
         if secant:
             J = _broyden(J, step, r_t - r)
             r, cost, exact = r_t, cost_t, False
@@ -257,6 +272,15 @@ def _rescaled(J_old, r_old, r_new, huber: float):
         return J_old
     slope = lambda r: np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-300))  # noqa: E731
     return J_old * (slope(r_new) / slope(r_old))[:, None]
+
+
+def _same_step(step, rejected, within: float = 0.1) -> bool:
+    """Whether ``step`` lies within ``within`` (a fraction of its size, largest component) of
+    the step ``rejected`` (None: none yet). Where the unknowns are nearly collinear, damping
+    below the model's smallest scaled curvature (1e-4 on a Triskele) changes a step by little, and
+    such a trial costs a rollout to fail as the last one did: from a Gauss-Newton start
+    (damping 1e-9) a refit tried 7 steps in a row before one passed."""
+    return rejected is not None and bool(np.max(np.abs(step - rejected)) < within * np.max(np.abs(rejected)))
 
 
 def _damped_step(model, scale, g, lam):

@@ -475,13 +475,14 @@ def test_a_pass_stopped_on_its_secant_jacobian_starts_the_next_from_it():
     it stops on its secant Jacobian's test (``exact_test=False``) and the next pass starts from
     that Jacobian (``initial_exact=False``), taking the exact one where it would stop. Oracle:
     the exponential decay's closed-form optimum, the exact Jacobian returned there, and fewer
-    exact Jacobians than the same two passes with exact tests."""
+    exact Jacobians than the same two passes with exact tests. The first pass stops after 20
+    iterations (it takes 30 to its own test), so that the second has steps to take."""
     rf, rj, optimum = _exponential_decay_problem()
     counts = {}
     for exact in (True, False):
         counted, calls = _counting(rj)
         x, J, r, *_ = levenberg_marquardt(
-            rf, counted, np.array([1.0, 0.5, 0.0]), 60, ftol=1e-2, max_step=np.inf, secant_jacobian=True, exact_test=exact
+            rf, counted, np.array([1.0, 0.5, 0.0]), 20, ftol=1e-2, max_step=np.inf, secant_jacobian=True, exact_test=exact
         )
         x, J, r, it, converged, _ = levenberg_marquardt(
             rf, counted, x, 60, ftol=1e-16, max_step=np.inf, initial=(r, J), secant_jacobian=True, initial_exact=exact
@@ -1118,3 +1119,37 @@ def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.csv" in err[0], err
     assert not (tmp_path / "bad_out" / "fits.csv").exists()
+
+
+def test_levenberg_marquardt_keeps_the_damping_that_passed_and_tries_no_step_twice():
+    """A chord iteration: r(x) = x with a Jacobian held at a quarter of the true one (a coarse
+    model's, as the refits hold), whose Gauss-Newton step overshoots the optimum x = 0 fourfold.
+    Oracle: the chord's fixed point is the optimum (J^T r = 0 only at r = 0), and a trial step
+    within a tenth of the last rejected one from the same point would fail as it did. The
+    damping that passed after a failed trial is kept (lowered again at once, every iteration
+    alternated a failed and a passed trial, and this chord never converged); no trial repeats a
+    rejected step."""
+    trials = []
+
+    def rf(x):
+        trials.append(np.array(x, float))
+        return np.array(x, float)
+
+    held = np.array([[0.25]])
+    x, _, _, it, converged, _ = levenberg_marquardt(
+        rf, lambda x: (np.array(x, float), held), np.array([1.0]), 200, ftol=1e-20, max_step=np.inf, lam0=1e-9
+    )
+    assert converged and abs(float(x[0])) < 1e-6, x
+    # the start, then per iteration its passed trial; failed ones: the first iteration's search
+    # from Gauss-Newton (two: every damping below 1e-3 gives the same step), then at most one per
+    # two iterations (a passed first trial lowers the damping again, and the next may fail)
+    assert len(trials) - 1 - it <= it // 2 + 2, (len(trials), it)
+    point, last_rejected = trials[0], None
+    for t in trials[1:]:
+        step = t - point
+        if last_rejected is not None:
+            assert np.max(np.abs(step - last_rejected)) >= 0.1 * np.max(np.abs(last_rejected)), (step, last_rejected)
+        if abs(t[0]) < abs(point[0]):
+            point, last_rejected = t, None
+        else:
+            last_rejected = step
