@@ -165,7 +165,7 @@ def levenberg_marquardt(
             while step is not None and _same_step(step, rejected) and lam < 1e30:
                 lam *= 2.0
                 step = _damped_step(model, scale, g, lam)
-            if step is not None and exact and np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta))):
+            if step is not None and exact and _negligible(step, theta, xtol):
                 break  # damped below xtol: no step left to try (the `small` test)
             damped = step
             if step is not None and geodesic and exact:
@@ -206,7 +206,7 @@ def levenberg_marquardt(
             save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist(), secant_steps=secant))
         if progress is not None:
             progress(it, cost, float(np.max(np.abs(step))))
-        small = np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta)))
+        small = _negligible(step, theta, xtol)
         converged = passes()
     if not exact and exact_test:  # out of iterations on a secant Jacobian: the exact one, and its test
         take_exact()
@@ -272,6 +272,11 @@ def _rescaled(J_old, r_old, r_new, huber: float):
         return J_old
     slope = lambda r: np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-300))  # noqa: E731
     return J_old * (slope(r_new) / slope(r_old))[:, None]
+
+
+def _negligible(step, theta, xtol: float) -> bool:
+    """Whether ``step`` moves ``theta`` by less than ``xtol`` (relative, largest component)."""
+    return bool(np.max(np.abs(step)) < xtol * (1.0 + np.max(np.abs(theta))))
 
 
 def _same_step(step, rejected, within: float = 0.1) -> bool:
