@@ -78,7 +78,10 @@ Over the whole recording it holds that Jacobian for ``HELD_ITER`` iterations, th
 finer model's own where they stopped: the refit ends there if its Gauss-Newton decrement puts
 the parameters within ``STILL`` standard errors of the optimum, else goes on by
 Levenberg-Marquardt with the finer model's Jacobian at every step, up to ``REFRESH`` Jacobians
-in all, and a refit that stops farther than ``STILL`` from its optimum is reported. The coarse
+in all, and a refit that stops farther than ``STILL`` from its optimum is reported, its
+distance (the decrement's, in standard errors) added to the error of every move and
+extrapolation it enters (a value that far off its optimum moves that much less or more), and
+in a contest the loss it would reach there, by its decrement, is compared. The coarse
 Jacobian held to the end would stop at its own fixed point (J_held^T r = 0), which is the finer
 grid's optimum only where the two grids' Jacobians agree, and where a finer dt moves the phase
 of a long recording's modes they do not: on `triskele_push_release_r1` from dt 0.25 to 0.125 ms
@@ -178,15 +181,16 @@ def extrapolation(prev, last, measured):
     and ``last`` of one chain (their ``what``: dt -> 0 at BDF-alpha's order 2, or nodes -> inf
     at RK4's 4), the error in ``last``'s standard errors per parameter: usable where the
     measured parameters' moves shrink at an observed order within ``ORDER_BAND`` of the scheme's
-    p and the error estimate |2**p m2 - m1| / (2**p - 1) of the extrapolated value (the
-    difference of the extrapolations from the last two pairs of grids) is below the last move
-    (module doc)."""
+    p and the error estimate of the extrapolated value is below the last move. The estimate is
+    |2**p m2 - m1| / (2**p - 1) (the difference of the extrapolations from the last two pairs of
+    grids; module doc) plus what the two refits' distances from their optima (`_off`) can move
+    the extrapolated value, (2**p d_last + d_prev) / (2**p - 1)."""
     # each move is in the standard errors of its own model (its noise levels): m1 goes into
     # last's, or a 2 % difference in the scales leaves several SE in 4 m2 - m1
     m1 = np.asarray(prev.move_se, float) * prev.se / last.se
     m2 = np.asarray(last.move_se, float)
     k = 2.0 ** ORDER[last.what]
-    error = np.abs(k * m2 - m1) / (k - 1.0)
+    error = (np.abs(k * m2 - m1) + k * _off(last) + _off(prev)) / (k - 1.0)
     a, b = np.linalg.norm(m1[measured]), np.linalg.norm(m2[measured])
     if not (a > 0 and b > 0):
         return False, error
@@ -235,6 +239,13 @@ class Level:
             wall_s=round(self.wall_s, 1),
             values={} if self.problem is None else _plain(self.problem.reported(self.theta)),
         )
+
+
+def _off(level) -> float:
+    """How far ``level``'s refit stopped from its model's optimum, in standard errors (0 for
+    None, the fit's own optimum, and where it was not measured): its values, and a move from or
+    to them, are uncertain by as much."""
+    return 0.0 if level is None or level.distance is None else float(level.distance)
 
 
 def _grid(problem, levels, i) -> int:
@@ -415,6 +426,16 @@ def noise_and_errors(problem, J, fine, r, p: int) -> tuple[np.ndarray, np.ndarra
     return noise, np.sqrt(np.maximum(np.diag(cov), 1e-300))
 
 
+def _note_stopped(notes, level):
+    """A note appended where ``level``'s refit stopped more than ``STILL`` standard errors from
+    its model's optimum (its Jacobians spent)."""
+    if level.distance is not None and level.distance > STILL:
+        notes.append(
+            f"the refit with {level.nodes} nodes, dt {level.dt:.3g} s stopped {level.distance:.2g} standard errors from that "
+            f"model's optimum after {level.jacobians} Jacobians (its move is uncertain by as much)"
+        )
+
+
 def _announce(what, n, h, tol) -> str:
     return f"refit with {n} nodes, dt {h:.3g} s, Newton tolerance {tol:.0e} ({what} error) ..."
 
@@ -521,11 +542,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
             Level(what, n, h, tl, th, (th - base) / se, float(r @ r) / max(m, 1), iterations, wall, noise, se,
                   fine, parent, jacobians, distance)
         )  # fmt: skip
-        if distance is not None and distance > STILL:
-            notes.append(
-                f"the refit with {n} nodes, dt {h:.3g} s stopped {distance:.2g} standard errors from that model's optimum after "
-                f"{jacobians} Jacobians (its move is uncertain by as much)"
-            )
+        _note_stopped(notes, levels[-1])
         say(f"  largest move {np.max(np.abs(levels[-1].move_se)):.3g} SE, reduced chi-square {levels[-1].chi2:.4g}")
         return levels[-1]
 
@@ -579,7 +596,8 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
                     "shrinks), so its move holds a space refinement too"
                     + (", taken out by the space chain's estimate of it" if g0 is not None else "")
                 )
-            settled = np.max(np.abs(lv.move_se[problem.measured])) <= THIRD
+            off = _off(lv) + _off(None if parent is None else levels[parent])  # the move's uncertainty
+            settled = np.max(np.abs(lv.move_se[problem.measured])) + off <= THIRD
             usable = False
             if prev is not None:
                 usable, error = extrapolation(prev, lv, problem.measured)
@@ -628,10 +646,10 @@ def _rival(problem, fine, start, anchor, answer, chi2, m, window_ends, progress)
     # over the whole recording at once (the start is the modal screen's: phase-true), else through the windows
     tries = [(start, (None,), None)] + ([(start, window_ends, None)] if len(window_ends) > 1 else [])
     try:
-        th, r, it, jac, _ = _attempt(fine, tries, held, m, chi2, progress=progress)
+        th, r, it, jac, distance = _attempt(fine, tries, held, m, chi2, progress=progress)
     except FitError as e:
         return "failed", cost, time.perf_counter() - t0, f"the refit from the start on the finest grid {e}"
-    return "ok", cost, time.perf_counter() - t0, (fine, th, r, it, jac, held)
+    return "ok", cost, time.perf_counter() - t0, (fine, th, r, it, jac, distance, held)
 
 
 def _rival_ahead(problem, levels, rivals, lv, tol, chi2, m, window_ends, progress):
@@ -695,14 +713,18 @@ def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, l
     if kind == "failed":
         notes.append(found)
         return False
-    fine, th, r, it, jac, held = found
+    fine, th, r, it, jac, distance, held = found
     cost = 0.5 * float(r @ r)
     noise, se = noise_and_errors(problem, J, fine, r, start.size)
     levels.append(
         Level("rival", last.nodes, last.dt, last.tol, th, (th - last.theta) / se, 2 * cost / m, it, time.perf_counter() - t0,
-              noise, se, fine, len(levels) - 1, jac)
+              noise, se, fine, len(levels) - 1, jac, distance)
     )  # fmt: skip
+    # the losses compared at the two optima: a refit that stopped short of its own lies above it
+    # by its decrement, half its distance squared
+    cost, answer = cost - 0.5 * _off(levels[-1]) ** 2, answer - 0.5 * _off(last) ** 2
     say(f"  its optimum's loss {cost:.6g} against the answer's {answer:.6g}")
+    _note_stopped(notes, levels[-1])
     moved = problem.labels()[int(np.argmax(np.where(problem.measured, np.abs(levels[-1].move_se), 0.0)))]
     if cost >= answer - CLOSE:
         if cost < answer + CLOSE:
@@ -721,13 +743,15 @@ def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, l
         say(f"refit of the better basin with {last.nodes} nodes, dt {h:.3g} s ...")
         coarser = problem.refined(nodes=last.nodes, dt=h, tol=last.tol)
         try:
-            th, r, it, jac, _ = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2, progress=progress)
+            th, r, it, jac, distance = _attempt(coarser, [(coarse[-1].theta, (None,), None)], held, m, chi2, progress=progress)
         except FitError as e:
             notes.append(f"the better basin's refit with dt {h:.3g} s {e}; its time error is not measured, the answer stands")
             return False
         noise, se = noise_and_errors(problem, J, coarser, r, start.size)
         coarse.append(Level("rival", last.nodes, h, last.tol, th, np.zeros_like(th), float(r @ r) / m, it,
-                            time.perf_counter() - t0, noise, se, coarser, None, jac))  # fmt: skip
+                            time.perf_counter() - t0, noise, se, coarser, None, jac, distance))  # fmt: skip
+    for lv in coarse[:0:-1]:
+        _note_stopped(notes, lv)
     base = len(levels)
     at4, at2, at1 = coarse[2], coarse[1], coarse[0]
     levels += [
@@ -739,7 +763,7 @@ def _contest(problem, levels, notes, start, J, chi2, m, progress, window_ends, l
         levels[i] = _time_move(levels[i], levels[levels[i].parent].theta, left, i, levels[i].parent)
     notes.append(
         f"on the finest grid ({last.nodes} nodes, dt {last.dt:.3g} s) the basin the fit started in fits better than the one "
-        f"the fit's grid led to (loss {0.5 * at1.chi2 * m:.6g} against {answer:.6g}; {moved} {np.max(np.abs(rival.move_se)):.3g} "
+        f"the fit's grid led to (loss {cost:.6g} against {answer:.6g}; {moved} {np.max(np.abs(rival.move_se)):.3g} "
         "standard errors away): the values are from the start's basin, its time error from refits at 2 and 4 times that dt"
     )
     return True
@@ -804,12 +828,18 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
         scale = _left_on(g0, grid(i)) - kept
         return {key: np.asarray(v) + scale * correction.get(key, 0.0) for key, v in reported(i).items()}
 
+    def widened(errors, off):
+        """``errors`` (per value) plus ``off`` of the reported standard errors: what the refits'
+        distances from their optima (`_off`) leave uncertain."""
+        return {key: np.asarray(e) + off * np.asarray(rescaled.standard_errors.get(key, 0.0)) for key, e in errors.items()}
+
     model = {}
     for what, idx in chains.items():
         last = levels[idx[-1]]
         at = corrected if what == "time" else reported  # the time chain's values carry the space correction
-        moved[what] = _difference(at(idx[-1]), at(last.parent))
-        moves = np.where(problem.measured, in_final_se(last, np.abs(last.move_se)), 0.0)
+        off = _off(last) + _off(None if last.parent is None else levels[last.parent])
+        moved[what] = widened(_difference(at(idx[-1]), at(last.parent)), off)
+        moves = np.where(problem.measured, in_final_se(last, np.abs(last.move_se) + off), 0.0)
         # Richardson from the last two moves: in time, to the finest dt's values; in space, where
         # time refined at the coarser nodes of the last space move, as a correction to them
         values_from_coarser = what == "space" and levels[chains["time"][0]].nodes < last.nodes
@@ -826,7 +856,8 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                     final = {key: np.asarray(v2[key]) + m2[key] / (k - 1.0) for key in v2}
                 else:
                     correction = {key: _space_error(m2[key]) for key in v2}
-                moved[what] = {key: np.abs(k * m2[key] - m1[key]) / (k - 1.0) for key in v2}
+                off = (k * _off(last) + _off(levels[idx[-2]])) / (k - 1.0)
+                moved[what] = widened({key: np.abs(k * m2[key] - m1[key]) / (k - 1.0) for key in v2}, off)
                 moves = np.where(problem.measured, in_final_se(last, error), 0.0)
                 model[extrapolated] = [levels[idx[-2]].dt, last.dt] if what == "time" else [levels[idx[-2]].nodes, last.nodes]
         if values_from_coarser and not usable:  # settled by its last move: the estimate takes the time moves' space part out
@@ -839,6 +870,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
             grids = model.get(extrapolated)
             how = (
                 f"{what} refinement (to {last.nodes} nodes, dt {last.dt:.3g} s) still moved {label} by {worst:.2g} standard errors"
+                + (f" (with {off:.2g} for its refits' distances from their optima)" if off > 0 else "")
                 if grids is None
                 else (
                     f"extrapolation to dt 0 from dt {grids[0]:.3g} and {grids[1]:.3g} s (at {last.nodes} nodes)"

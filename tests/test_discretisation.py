@@ -522,7 +522,7 @@ class TwoBasins(Linear):
         return np.asarray(theta, float), 0.5 * float(r @ r)
 
     def refined(self, nodes, dt, tol):
-        return TwoBasins(nodes, dt, self.flips)
+        return type(self)(nodes, dt, self.flips)
 
     def reported(self, theta):
         return {"x": float(np.asarray(theta)[0])}
@@ -538,12 +538,12 @@ class TwoBasins(Linear):
         return sol.x, chi2, np.sqrt(np.diag(np.linalg.inv(sol.jac.T @ sol.jac)) * chi2)
 
 
-def _two_basins_report(flips: bool, start=None):
-    """(the fit's grid's problem, its standard error, the report) of a fit that ended in the basin
-    near 0, having begun at ``start`` (default: x = 1, in the other basin)."""
+def _two_basins_report(flips: bool, start=None, model=TwoBasins):
+    """(the fit's grid's problem, its standard error, the report) of a fit on ``model`` that ended
+    in the basin near 0, having begun at ``start`` (default: x = 1, in the other basin)."""
     from identify.result import Result
 
-    coarse = TwoBasins(10, 0.1, flips)
+    coarse = model(10, 0.1, flips)
     theta, chi2, se = coarse.optimum(0.0)  # the fit's grid leads to the basin near 0
     J = coarse.residual_and_jacobian(theta)[1]
     result = Result(
@@ -567,6 +567,34 @@ def test_a_start_in_a_basin_that_a_finer_grid_prefers_takes_the_answer_over():
     got, err = rep.values["x"], rep.discretisation_errors["x"]
     assert abs(got - 1.0) <= err + 0.05 * se[0], ((got - 1.0) / se[0], err / se[0])
     assert abs(rep.refinements[-5]["values"]["x"] - 1.0) > 0.9  # the chain's own answer: the other basin
+
+
+class FarBasins(TwoBasins):
+    """`TwoBasins` with the basins moving three times as far with dt (C 30: the rival's optimum
+    at x = 1.3 on the fit's grid, 1.02 at the finest)."""
+
+    C = 30.0
+
+
+def test_refits_that_stop_short_of_their_optima_widen_the_error_they_measure(monkeypatch):
+    """Every refit given one Jacobian of its own model, so that the rival basin's refits stop
+    0.35 to 0.94 standard errors short of their optima: their distances are reported, each in a
+    note, and the time error of the answer (extrapolated from two of them) covers the distance
+    to the dt -> 0 optimum x = 1 (0.33 SE; without the distances the error claimed 0.087 SE)."""
+    attempt = discretisation._attempt
+
+    def one_jacobian(fine, tries, J, m, chi2, refresh=discretisation.REFRESH, progress=None):
+        return attempt(fine, tries, J, m, chi2, min(refresh, 1), progress)
+
+    monkeypatch.setattr(discretisation, "_attempt", one_jacobian)
+    _, se, rep = _two_basins_report(flips=True, model=FarBasins)
+    rivals = [r for r in rep.refinements if r["refit"] == "rival"]
+    assert len(rivals) == 2 and all(r["distance_to_optimum_se"] is not None for r in rivals), rivals
+    far = [r for r in rep.refinements if (r["distance_to_optimum_se"] or 0.0) > discretisation.STILL]
+    assert len(far) >= 2 and all(f"dt {r['dt']:.3g} s stopped" in rep.message for r in far), rep.message
+    got, err = rep.values["x"], rep.discretisation_errors["x"]
+    assert abs(got - 1.0) > 0.1 * se[0]  # the distances matter here
+    assert abs(got - 1.0) <= err, ((got - 1.0) / se[0], err / se[0])
 
 
 def test_a_start_whose_basin_fits_worse_on_the_finest_grid_leaves_the_answer():
