@@ -822,7 +822,13 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     space_error = 16 / 15 * (space["values"]["lengths"] - v0)
     v0, v1 = ((v + ((g0 / g) ** 4 - (g0 / g2) ** 4) * space_error) for v, g in ((v0, g0), (v1, g1)))
     assert res["values"]["lengths"] == pytest.approx(v2 + (v2 - v1) / 3, rel=1e-12, abs=res["tolerance_errors"]["lengths"])
-    moves = (abs(space["values"]["lengths"] - tol["values"]["lengths"]), abs(4 * (v2 - v1) - (v1 - v0)) / 3)
+    # each widened by what the refits' distances from their optima leave uncertain, in standard errors
+    off = [r["distance_to_optimum_se"] or 0.0 for r in (space, step, step2)]
+    se = res["standard_errors"]["lengths"]
+    moves = (
+        abs(space["values"]["lengths"] - tol["values"]["lengths"]) + off[0] * se,
+        abs(4 * (v2 - v1) - (v1 - v0)) / 3 + (4 * off[2] + off[1]) / 3 * se,
+    )
     assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.5 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
