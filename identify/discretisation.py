@@ -190,7 +190,7 @@ def extrapolation(prev, last, measured):
     m1 = np.asarray(prev.move_se, float) * prev.se / last.se
     m2 = np.asarray(last.move_se, float)
     k = 2.0 ** ORDER[last.what]
-    error = (np.abs(k * m2 - m1) + k * _off(last) + _off(prev)) / (k - 1.0)
+    error = np.abs(k * m2 - m1) / (k - 1.0) + _extrapolation_off(prev, last)
     a, b = np.linalg.norm(m1[measured]), np.linalg.norm(m2[measured])
     if not (a > 0 and b > 0):
         return False, error
@@ -246,6 +246,19 @@ def _off(level) -> float:
     None, the fit's own optimum, and where it was not measured): its values, and a move from or
     to them, are uncertain by as much."""
     return 0.0 if level is None or level.distance is None else float(level.distance)
+
+
+def _move_off(levels, level) -> float:
+    """What the distances from their optima (`_off`) of ``level`` and of its parent in
+    ``levels`` (None: the fit's own optimum) leave uncertain in ``level``'s move."""
+    return _off(level) + _off(None if level.parent is None else levels[level.parent])
+
+
+def _extrapolation_off(prev, last) -> float:
+    """What the distances of ``prev`` and ``last`` (`_off`) can move Richardson's extrapolation
+    from them, (2**p d_last + d_prev) / (2**p - 1)."""
+    k = 2.0 ** ORDER[last.what]
+    return (k * _off(last) + _off(prev)) / (k - 1.0)
 
 
 def _grid(problem, levels, i) -> int:
@@ -429,7 +442,7 @@ def noise_and_errors(problem, J, fine, r, p: int) -> tuple[np.ndarray, np.ndarra
 def _note_stopped(notes, level):
     """A note appended where ``level``'s refit stopped more than ``STILL`` standard errors from
     its model's optimum (its Jacobians spent)."""
-    if level.distance is not None and level.distance > STILL:
+    if _off(level) > STILL:
         notes.append(
             f"the refit with {level.nodes} nodes, dt {level.dt:.3g} s stopped {level.distance:.2g} standard errors from that "
             f"model's optimum after {level.jacobians} Jacobians (its move is uncertain by as much)"
@@ -596,8 +609,7 @@ def refine(problem, theta, J, max_levels: int = 2, progress=None, chi2: float = 
                     "shrinks), so its move holds a space refinement too"
                     + (", taken out by the space chain's estimate of it" if g0 is not None else "")
                 )
-            off = _off(lv) + _off(None if parent is None else levels[parent])  # the move's uncertainty
-            settled = np.max(np.abs(lv.move_se[problem.measured])) + off <= THIRD
+            settled = np.max(np.abs(lv.move_se[problem.measured])) + _move_off(levels, lv) <= THIRD
             usable = False
             if prev is not None:
                 usable, error = extrapolation(prev, lv, problem.measured)
@@ -837,7 +849,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
     for what, idx in chains.items():
         last = levels[idx[-1]]
         at = corrected if what == "time" else reported  # the time chain's values carry the space correction
-        off = _off(last) + _off(None if last.parent is None else levels[last.parent])
+        off = _move_off(levels, last)
         moved[what] = widened(_difference(at(idx[-1]), at(last.parent)), off)
         moves = np.where(problem.measured, in_final_se(last, np.abs(last.move_se) + off), 0.0)
         # Richardson from the last two moves: in time, to the finest dt's values; in space, where
@@ -856,7 +868,7 @@ def report(problem, theta, J, result, max_levels: int = 2, progress=None, window
                     final = {key: np.asarray(v2[key]) + m2[key] / (k - 1.0) for key in v2}
                 else:
                     correction = {key: _space_error(m2[key]) for key in v2}
-                off = (k * _off(last) + _off(levels[idx[-2]])) / (k - 1.0)
+                off = _extrapolation_off(levels[idx[-2]], last)
                 moved[what] = widened({key: np.abs(k * m2[key] - m1[key]) / (k - 1.0) for key in v2}, off)
                 moves = np.where(problem.measured, in_final_se(last, error), 0.0)
                 model[extrapolated] = [levels[idx[-2]].dt, last.dt] if what == "time" else [levels[idx[-2]].nodes, last.nodes]
