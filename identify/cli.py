@@ -174,24 +174,41 @@ def run(args) -> dict:
         raise ValueError(f"--refine must be 0 or more, got {args.refine}")
     # matplotlib's import (about a second) while the fit runs, which mostly waits on compiled programs
     threading.Thread(target=_import_pyplot, daemon=True).start()
-    result = fit(
-        problem,
-        max_iter=args.max_iter,
-        state_dir=out,
-        progress=progress,
-        modal=args.start == "modal",
-        refine_levels=args.refine,
-        profiles=args.profile,
-    )
+    answered = []
+
+    def answer(result):
+        """The answer on the fit's grid, shown and kept in fit.json while the refinements run."""
+        _write_fit(out, rec, problem, result, final=False)
+        answered.append(result)
+        m = result.model
+        print(
+            f"the fit's answer on its own grid ({m['nodes']} nodes, dt {m['dt']:.3g} s) after {result.wall_s:.1f} s, "
+            f"± statistical (noise) only, in {out / 'fit.json'}:"
+        )
+        _print_values(result)
+        print(f"its discretisation error next: up to {args.refine} refinements in space, then in time ...", flush=True)
+
+    try:
+        result = fit(
+            problem,
+            max_iter=args.max_iter,
+            state_dir=out,
+            progress=progress,
+            modal=args.start == "modal",
+            refine_levels=args.refine,
+            profiles=args.profile,
+            answer=answer,
+        )
+    except KeyboardInterrupt:
+        if answered:
+            print(f'the fit\'s answer on its own grid stays in {out / "fit.json"} ("final": false)', file=sys.stderr)
+        raise
+    payload = _write_fit(out, rec, problem, result, final=True)
     seen = np.asarray(problem.seen(problem.to_theta(_as_arrays(result.values))))
-    payload = dict(recording=str(rec.path), fit=problem.fit, units=UNITS, **result.to_json())
-    if result.profiles:  # the standard errors widened where the profiles' intervals are wider
-        payload["statistical_errors"] = {k: result.statistical_error(k) for k in result.standard_errors}
-    (out / "fit.json").write_text(json.dumps(payload, indent=2))
     _plots(out, rec, seen, result)
-    for name, v in result.values.items():
-        stat = result.statistical_error(name)
-        print(f"{name:>15} = {format_value(name, v, stat, result.discretisation_errors.get(name))}")
+    if answered:
+        print("the values after the refinements:")
+    _print_values(result)
     if result.model:
         m = result.model
         if "extrapolated_from_dt" in m or "extrapolated_from_nodes" in m:
@@ -239,6 +256,22 @@ def run(args) -> dict:
     )
     (out / "fit_state.json").unlink(missing_ok=True)  # done: a new run starts afresh
     return payload
+
+
+def _write_fit(out: Path, rec, problem, result, final: bool) -> dict:
+    """fit.json: the result, with ``final`` false for the fit's own grid's answer that the
+    refinements will replace."""
+    payload = dict(recording=str(rec.path), fit=problem.fit, units=UNITS, final=final, **result.to_json())
+    if result.profiles:  # the standard errors widened where the profiles' intervals are wider
+        payload["statistical_errors"] = {k: result.statistical_error(k) for k in result.standard_errors}
+    (out / "fit.json").write_text(json.dumps(payload, indent=2))
+    return payload
+
+
+def _print_values(result):
+    for name, v in result.values.items():
+        stat = result.statistical_error(name)
+        print(f"{name:>15} = {format_value(name, v, stat, result.discretisation_errors.get(name))}")
 
 
 UNITS = dict(

@@ -267,6 +267,7 @@ def fit(
     modal: bool = True,
     refine_levels: int = 2,
     profiles: bool = False,
+    answer=None,
 ) -> Result:
     """Fit by continuation in the recording's length, then once more with estimated noise levels.
 
@@ -292,6 +293,9 @@ def fit(
     Before the refinements, two residuals measure the loss one standard error either side along
     its least determined combination of unknowns (`valley`): the message says where its rise
     there shows the standard errors overstating or understating the uncertainty.
+    ``answer(result)``, if given, receives the answer on the fit's own grid (statistical errors
+    only, its grid in ``model``) before the refinements start, which take several times the
+    fit's time: a caller shows and keeps it while they run.
     """
     t0 = time.perf_counter()
     duration = float(problem.t[-1] - problem.t[0])
@@ -411,6 +415,10 @@ def fit(
     if profiles:
         result, theta, J, r = _profiled(pb, theta, J, r, result, max_iter, progress)
     result = _with_valley(pb, theta, J, r, result)
+    if refine_levels > 0 and answer is not None:
+        solver = pb.scene.solver
+        grid = dict(nodes=solver.nodes, dt=float(solver.dt), tol=float(solver.newton.tol))
+        answer(dataclasses.replace(result, wall_s=time.perf_counter() - t0, model=grid))
     if refine_levels > 0:
         result = discretisation.report(
             pb,

@@ -756,7 +756,7 @@ def test_rod_tip_angle_is_the_tangent_angle_in_the_bending_plane():
         assert abs(theta - expected) < 1e-4 and abs(theta) > 1e-3
 
 
-def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsys):
+def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsys, monkeypatch):
     """The whole `pcrjax-identify` path on a small case, in the default run: a cantilever
     recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 40x in
     time than the fit's (N 6, dt 2 ms), fitted from tau a factor 3 off and the length 1.6 mm off
@@ -779,11 +779,31 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     pose[wild, :2] += 5e-3 * np.array([1.0, -1.0])
     write_frames(path, rec.t, pose)
     out = tmp_path / "fit"
+    # what fit.json holds when the refinements start: the fit's own answer
+    from identify import discretisation
+
+    kept, report = [], discretisation.report
+    monkeypatch.setattr(
+        discretisation, "report", lambda *a, **k: (kept.append(json.loads((out / "fit.json").read_text())), report(*a, **k))[1]
+    )
     assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "2", "--profile"]) == 0
     printed = capsys.readouterr().out
     print(printed)
     assert "± statistical (noise), ± discretisation" in printed
     res = json.loads((out / "fit.json").read_text())
+    # that answer is the fit grid's: the tolerance refit (the same grid, a tenth of the Newton
+    # tolerance) moves its values by the tolerance errors alone; no discretisation error yet
+    (first,) = kept
+    assert res["final"] and not first["final"] and first["discretisation_errors"] == {}
+    assert first["model"] == dict(nodes=6, dt=pytest.approx(2e-3), tol=pytest.approx(1e-10)) and first["wall_s"] < res["wall_s"]
+    assert "the fit's answer on its own grid (6 nodes, dt 0.002 s)" in printed
+    for name in ("tau", "lengths", "time_offset"):
+        moved = np.abs(np.asarray(first["values"][name]) - np.asarray(res["refinements"][0]["values"][name]))
+        assert np.all(moved <= 1.01 * np.asarray(res["tolerance_errors"][name]) + 1e-15), (
+            name,
+            moved,
+            res["tolerance_errors"][name],
+        )
     # the profiles at the fit's grid: this small problem's loss is nearly quadratic, so each
     # 68 % interval is about the fit's value ± its standard error, and the fit is at its minimum
     assert set(res["profiles"]) == {"tau", "lengths"} and "68 % profile interval" in printed
@@ -832,6 +852,33 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     assert abs(np.hypot(*moves) - res["discretisation_errors"]["lengths"]) <= 1.5 * res["tolerance_errors"]["lengths"] + 1e-15
     assert all((out / f).is_file() for f in ("fit_time.png", "fit_plane.png", "residuals.png", "loss.png"))
     assert not (out / "fit_state.json").exists()
+
+
+def test_cli_keeps_the_fits_own_answer_when_the_refinements_are_interrupted(tmp_path, capsys, monkeypatch):
+    """Interrupted (Ctrl-C) during the refinements, `pcrjax-identify` exits 130 and fit.json keeps
+    the answer on the fit's grid that it showed when the fit converged ("final": false), and
+    says so beside the resume hint (the fit itself is stood in for: the end-to-end test above
+    checks the answer it hands over)."""
+    import identify.fit as fit_module
+    from identify import cli
+    from identify.result import Result
+
+    def interrupted(problem, answer=None, **_):
+        shown = Result(problem.labels(), {"tau": 1.25e-3}, {"tau": 2e-5}, [[1.0]], [2e-6, 1e-3], 1.02, [2e-6, 2e-6, 1e-3])
+        answer(dataclasses.replace(shown, wall_s=12.5, model=dict(nodes=20, dt=1e-3, tol=1e-10)))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit_module, "fit", interrupted)
+    for suffix in (".csv", ".toml"):
+        (tmp_path / f"rec{suffix}").write_bytes((Path(DATA) / f"cantilever_release{suffix}").read_bytes())
+    out = tmp_path / "fit"
+    assert cli.main([str(tmp_path / "rec.csv"), "--out", str(out), "--fit", "tau"]) == 130
+    printed = capsys.readouterr()
+    kept = json.loads((out / "fit.json").read_text())
+    assert kept["final"] is False and kept["values"] == {"tau": 1.25e-3} and kept["wall_s"] == 12.5
+    assert "the fit's answer on its own grid (20 nodes, dt 0.001 s) after 12.5 s" in printed.out
+    assert "1.250 ± 0.020 ms" in printed.out
+    assert "stays in" in printed.err and "resume" in printed.err
 
 
 def test_cli_fits_a_short_triskele_push_release_from_a_finer_grid_end_to_end(tmp_path, capsys):
