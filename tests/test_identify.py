@@ -783,9 +783,12 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     from identify import discretisation
 
     kept, report = [], discretisation.report
-    monkeypatch.setattr(
-        discretisation, "report", lambda *a, **k: (kept.append(json.loads((out / "fit.json").read_text())), report(*a, **k))[1]
-    )
+
+    def reading_first(*a, **k):
+        kept.append(json.loads((out / "fit.json").read_text()))
+        return report(*a, **k)
+
+    monkeypatch.setattr(discretisation, "report", reading_first)
     assert cli.main([str(path), "--out", str(out), "--start", "given", "--refine", "2", "--profile"]) == 0
     printed = capsys.readouterr().out
     print(printed)
