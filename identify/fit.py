@@ -393,9 +393,11 @@ def fit(
                 initial=initial,
                 huber=pb.huber,
                 secant_jacobian=t_end is None,
-                exact_test=not for_noise,
+                exact_test=t_end is None and not for_noise,  # a window's and that pass's answers start the next pass
                 initial_exact=False,  # an initial comes from the least-squares pass: maybe its secant Jacobian
                 geodesic=t_end is None,
+                secant_test=t_end is not None,
+                speculate=threads.WORKERS > 1 and t_end is None,
             )
         except FitError as e:
             at = problem.to_values(jnp.asarray(theta))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -45,6 +46,8 @@ def levenberg_marquardt(
     exact_test: bool = True,
     initial_exact: bool = True,
     geodesic: bool = False,
+    secant_test: bool = False,
+    speculate: bool = False,
 ):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
@@ -103,7 +106,18 @@ def levenberg_marquardt(
     with geodesic steps on exact Jacobians throughout, 6 + 6 with plain steps on exact
     Jacobians, 7 + 15 with the secant alone; on `triskele_push_release_r2`, 2 + 6 with both,
     4 + 7 with geodesic steps on exact Jacobians throughout, 3 + 7 with the secant alone. Both
-    together cost the fewest Jacobians over the two."""
+    together cost the fewest Jacobians over the two.
+
+    ``secant_test`` (for a pass whose answer only starts another, without ``exact_test``): after
+    a step accepted on an exact Jacobian, the convergence test is made first on that Jacobian's
+    Broyden update, and the exact one is taken only where that test fails. A window of a
+    Triskele push-release mostly stops after one step, and its exact Jacobian there (the next
+    window takes its own at the same point) cost as much as the step.
+
+    ``speculate``: ``rj`` at each trial point starts in another thread beside ``rf`` there, where
+    an accepted step would take the exact Jacobian; accepted, the step has its Jacobian a residual
+    sooner. ``rj`` and ``rf`` then run side by side (programs free of batched LAPACK calls,
+    `identify.threads`), and no trial starts another while a rejected one's still runs."""
     theta = np.asarray(theta0, float)
     lam, history, it0, S = lam0, [], 0, np.zeros((theta.size, theta.size))
     if start is not None:
@@ -120,10 +134,11 @@ def levenberg_marquardt(
     exact = initial_exact or initial is None or start is not None
     anchor = (theta, r, J) if exact else None  # the last point where J was rj's
 
-    def take_exact():
-        """rj at theta, and the secant estimate updated over the steps since the last exact Jacobian."""
+    def take_exact(known=None):
+        """rj at theta (``known``: already taken there), and the secant estimate updated over the
+        steps since the last exact Jacobian."""
         nonlocal r, J, S, exact, anchor, cost
-        r_new, J_new = (np.asarray(a) for a in rj(jnp.asarray(theta)))
+        r_new, J_new = known if known is not None else _evaluated(rj, theta)
         if not (np.all(np.isfinite(r_new)) and np.all(np.isfinite(J_new))):
             raise FitError("the Jacobian at an accepted step is not finite (its tangent solves did not converge)")
         if anchor is not None and np.any(theta != anchor[0]):
@@ -145,6 +160,8 @@ def levenberg_marquardt(
         return decrement(J, r, huber) < ftol * cost or small
 
     converged = passes()
+    pool = ThreadPoolExecutor(max_workers=1) if speculate else None
+    ahead = None  # (trial point, the future of rj there) started beside a trial's residual
     it = it0
     for it in range(it0 + 1, max_iter + 1):
         if converged and not exact and exact_test:  # a secant Jacobian's test is made again with the exact one
@@ -171,6 +188,8 @@ def levenberg_marquardt(
             if step is not None and geodesic and exact:
                 step = _accelerated(rf, theta, r, J, step, model + lam * scale, scale, max_step)
             if step is not None:
+                if pool is not None and not secant and (ahead is None or ahead[1].done()):
+                    ahead = (theta + step, pool.submit(_evaluated, rj, theta + step))
                 r_t = np.asarray(rf(jnp.asarray(theta + step)))
                 cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf
                 if cost_t < cost:
@@ -200,7 +219,11 @@ def levenberg_marquardt(
             J = _broyden(J, step, r_t - r)
             r, cost, exact = r_t, cost_t, False
         else:
-            take_exact()
+            updated = _broyden(J, step, r_t - r) if secant_test else None
+            if updated is not None and decrement(updated, r_t, huber) < ftol * cost_t:
+                J, r, cost, exact = updated, r_t, cost_t, False
+            else:
+                take_exact(ahead[1].result() if ahead is not None and np.array_equal(ahead[0], theta) else None)
         history.append(cost)
         if save is not None:
             save(dict(theta=theta.tolist(), lam=lam, history=history, iteration=it, secant=S.tolist(), secant_steps=secant))
@@ -211,7 +234,14 @@ def levenberg_marquardt(
     if not exact and exact_test:  # out of iterations on a secant Jacobian: the exact one, and its test
         take_exact()
         converged = passes()
+    if pool is not None:
+        pool.shutdown(wait=False)
     return theta, J, r, it, converged, history
+
+
+def _evaluated(rj, theta):
+    """``rj(theta)`` as numpy arrays (the program run to its end)."""
+    return tuple(np.asarray(a) for a in rj(jnp.asarray(theta)))
 
 
 # Geodesic acceleration (Transtrum and Sethna 2012): the residuals' second derivative along the

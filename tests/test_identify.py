@@ -23,7 +23,7 @@ from helpers import recording_generator
 import pcrjax
 from identify import experiment, modes, platform_screen, start
 from identify.fit import FitError, Problem, fit
-from identify.least_squares import levenberg_marquardt
+from identify.least_squares import decrement, levenberg_marquardt
 from identify.problem import CLOCK_STARTS, LINEAR
 from identify.recording import load_recording, write_frames
 from identify.result import summarize
@@ -193,7 +193,8 @@ def test_programs_the_screen_runs_in_threads_hold_no_batched_lapack_call():
 
 def test_programs_of_the_threaded_ranking_and_screening_hold_no_batched_lapack_call():
     """The modal start ranks its candidates by push-and-camera fits, and screens the best two by
-    short fits of every unknown, on one thread per core (`identify.threads`): the rollout's
+    short fits of every unknown, on one thread per core (`identify.threads`), and the fit's
+    passes take the Jacobian at a trial point beside its residual (``speculate``): the rollout's
     residual and Jacobian, the push-and-camera residual and Jacobian and the clock scan then run
     side by side, and must hold no batched LAPACK call. The clock scan's 41 starts as a `vmap`
     made its solve a batched LU (41 x 6 x 6)."""
@@ -525,6 +526,62 @@ def test_geodesic_acceleration_follows_a_curved_valley_in_fewer_jacobians():
         np.testing.assert_array_equal(J, rj(x)[1])
         jacobians[geodesic, secant] = calls[0]
     assert max(jacobians[True, False], jacobians[True, True]) < jacobians[False, False] / 2, jacobians
+
+
+def test_a_window_stops_on_the_broyden_test_where_the_exact_jacobian_would_stop_it_too():
+    """A window's answer only starts the next window, which takes its own Jacobian there: with
+    ``secant_test`` the convergence test after an accepted step is made on the Broyden update
+    of the Jacobian, and the exact one is taken only where that fails. Oracle: on the
+    large-residual problem, at each tolerance, the pass stops at the point where the exact
+    tests stop it (the closed-form test: the decrement of the exact Jacobian there below the
+    tolerance), with one exact Jacobian fewer."""
+    rf, rj = _large_residual_problem()
+    for ftol in (1e-1, 1e-2, 1e-3):
+        runs = {}
+        for secant_test in (False, True):
+            counted, calls = _counting(rj)
+            x, _, _, it, converged, _ = levenberg_marquardt(
+                rf,
+                counted,
+                np.array([0.3, -0.2]),
+                40,
+                ftol=ftol,
+                max_step=np.inf,
+                secant_test=secant_test,
+                exact_test=not secant_test,
+            )
+            r, J = rj(x)
+            assert converged and decrement(J, r) < ftol * 0.5 * float(r @ r), (ftol, secant_test, x)
+            runs[secant_test] = x, calls[0]
+        np.testing.assert_array_equal(runs[True][0], runs[False][0])
+        assert runs[True][1] == runs[False][1] - 1, (ftol, runs)
+
+
+def test_jacobians_speculated_beside_the_trial_residual_change_no_iterate():
+    """``speculate``: the Jacobian at each trial point starts in another thread beside the trial's
+    residual, so an accepted step has it sooner. It changes no number: on Rosenbrock's valley
+    with geodesic steps (an exact Jacobian after every accepted step) the iterates, the losses
+    and the Jacobian returned equal those of the plain run, and the optimum is the closed-form
+    (1, 1); the Jacobians were taken off the caller's thread."""
+    import threading
+
+    rf, rj = _rosenbrock()
+    runs = {}
+    for speculate in (False, True):
+        where = []
+
+        def traced(x, where=where):
+            where.append(threading.current_thread() is threading.main_thread())
+            return rj(x)
+
+        x, J, _, it, converged, hist = levenberg_marquardt(
+            rf, traced, np.array([-1.2, 1.0]), 300, ftol=1e-16, max_step=np.inf, geodesic=True, speculate=speculate
+        )
+        assert converged and np.max(np.abs(x - 1.0)) < 1e-6, (speculate, x)
+        runs[speculate] = x, J, it, hist, where
+    for a, b in zip(runs[False][:4], runs[True][:4], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert all(runs[False][4]) and not all(runs[True][4])
 
 
 def test_geodesic_correction_is_half_the_acceleration_where_it_is_small_beside_the_step():
