@@ -152,7 +152,6 @@ errors) and refitted the start to an optimum worse than the answer's.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import threading
 import time
@@ -340,30 +339,6 @@ def _held(problem, theta, J, t_end, max_iter, gain=None, r0=None, progress=None)
     return theta, r, it
 
 
-class _Refits:
-    """How many refits (`chord_refit`) run now in this process, on its threads: one alone leaves
-    a core idle, on which its Jacobians are started beside its trial residuals."""
-
-    def __init__(self):
-        self._n, self._lock = 0, threading.Lock()
-
-    @contextlib.contextmanager
-    def one(self):
-        with self._lock:
-            self._n += 1
-        try:
-            yield
-        finally:
-            with self._lock:
-                self._n -= 1
-
-    def alone(self) -> bool:
-        return threads.WORKERS > 1 and self._n <= 1
-
-
-_RUNNING = _Refits()
-
-
 def chord_refit(
     problem, theta, J, window_ends=(None,), max_iter: int = CHORD_ITER, refresh: int = REFRESH, r0=None, progress=None
 ):
@@ -392,15 +367,21 @@ def chord_refit(
     if not refresh:
         return theta, r, total, 0, None
     r, J = (np.asarray(a) for a in problem.residual_and_jacobian(theta))
-    # each accepted step takes the model's Jacobian again (1 + it in all), so that the secant
-    # estimate of the noise's curvature term builds up and the steps head for the optimum itself;
-    # where no other refit runs, the Jacobian at each trial point starts on the idle core
+    jacobians = 1
+
+    def own(x):
+        nonlocal jacobians
+        jacobians += 1
+        return problem.residual_and_jacobian(x)
+
+    # each accepted step takes the model's Jacobian again, so that the secant estimate of the
+    # noise's curvature term builds up and the steps head for the optimum itself
     theta, J, r, it, _, _ = levenberg_marquardt(
-        problem.residual, problem.residual_and_jacobian, theta, refresh - 1,
-        ftol=still / max(0.5 * float(r @ r), 1e-300), max_step=problem.max_step, initial=(r, J), lam0=1e-9,
-        huber=problem.huber, progress=_iterations(progress, "whole recording, own Jacobian"), speculate=_RUNNING.alone,
+        problem.residual, own, theta, refresh - 1, ftol=still / max(0.5 * float(r @ r), 1e-300),
+        max_step=problem.max_step, initial=(r, J), lam0=1e-9, huber=problem.huber,
+        progress=_iterations(progress, "whole recording, own Jacobian"),
     )  # fmt: skip
-    return theta, np.asarray(r), total + it, 1 + it, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
+    return theta, np.asarray(r), total + it, jacobians, float(np.sqrt(2.0 * decrement(J, r, problem.huber)))
 
 
 def _near(fine, theta, J):
@@ -423,8 +404,7 @@ def _attempt(fine, tries, J, m, chi2, refresh=REFRESH, progress=None):
     iterations = jacobians = 0
     for start, ends, r0 in tries:
         try:
-            with _RUNNING.one():
-                th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0, progress=progress)
+            th, r, it, jac, distance = chord_refit(fine, start, J, ends, refresh=refresh, r0=r0, progress=progress)
         except FitError as e:
             why = f"failed ({e})"
             continue

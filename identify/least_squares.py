@@ -47,7 +47,7 @@ def levenberg_marquardt(
     initial_exact: bool = True,
     geodesic: bool = False,
     secant_test: bool = False,
-    speculate: bool | Callable[[], bool] = False,
+    speculate: bool = False,
 ):
     """Minimise ``0.5 |rf(theta)|^2``, with ``rj(theta) = (residual, Jacobian)``.
 
@@ -117,8 +117,7 @@ def levenberg_marquardt(
     ``speculate``: ``rj`` at each trial point starts in another thread beside ``rf`` there, where
     an accepted step would take the exact Jacobian; accepted, the step has its Jacobian a residual
     sooner. ``rj`` and ``rf`` then run side by side (programs free of batched LAPACK calls,
-    `identify.threads`), and no trial starts another while a rejected one's still runs. A
-    callable is asked at each trial (whether a core is idle now)."""
+    `identify.threads`), and no trial starts another while a rejected one's still runs."""
     theta = np.asarray(theta0, float)
     lam, history, it0, S = lam0, [], 0, np.zeros((theta.size, theta.size))
     if start is not None:
@@ -162,7 +161,6 @@ def levenberg_marquardt(
 
     converged = passes()
     pool = ThreadPoolExecutor(max_workers=1) if speculate else None
-    wanted = speculate if callable(speculate) else lambda: True
     ahead = None  # (trial point, the future of rj there) started beside a trial's residual
     it = it0
     for it in range(it0 + 1, max_iter + 1):
@@ -190,7 +188,7 @@ def levenberg_marquardt(
             if step is not None and geodesic and exact:
                 step = _accelerated(rf, theta, r, J, step, model + lam * scale, scale, max_step)
             if step is not None:
-                if pool is not None and not secant and (ahead is None or ahead[1].done()) and wanted():
+                if pool is not None and not secant and (ahead is None or ahead[1].done()):
                     ahead = (theta + step, pool.submit(_evaluated, rj, theta + step))
                 r_t = np.asarray(rf(jnp.asarray(theta + step)))
                 cost_t = 0.5 * float(r_t @ r_t) if np.all(np.isfinite(r_t)) else math.inf

@@ -6,7 +6,6 @@ values unused."""
 
 from __future__ import annotations
 
-import contextlib
 import types
 
 import numpy as np
@@ -263,41 +262,6 @@ def test_a_refit_from_known_residuals_takes_them_as_its_first():
     np.testing.assert_array_equal(known[0], plain[0])
     windows = discretisation.chord_refit(fine, theta, J, (0.3, 0.6, None), r0=np.zeros(3 * FRAMES))  # a wrong r0: unused
     np.testing.assert_array_equal(discretisation.chord_refit(fine, theta, J, (0.3, 0.6, None))[0], windows[0])
-
-
-def test_a_refit_alone_starts_its_jacobians_beside_its_trials_and_ends_where_it_would_without(monkeypatch):
-    """A refit with no other beside it (`discretisation._attempt`, as `refine` runs it) takes the
-    finer model's Jacobian at each trial point on another thread beside the trial's residual
-    (the second core idles otherwise); beside another refit it takes them on its own thread. The
-    two end at the same numbers: the answer, its residuals, the iterations and Jacobians counted
-    (the accepted steps' only: a rejected trial's Jacobian is not used), the distance to the
-    optimum; and that answer is the optimum (SciPy's)."""
-    import threading
-
-    monkeypatch.setattr(discretisation.threads, "WORKERS", 2)
-    coarse = Curved(10, 0.1)
-    theta, _ = coarse.optimum()
-    J = coarse.residual_and_jacobian(theta)[1]
-    fine = Curved(40, 0.1)
-    best, se = fine.optimum()
-    runs = {}
-    for beside in (False, True):
-        on_main = []
-
-        def own(th, t_end=None, on_main=on_main):
-            on_main.append(threading.current_thread() is threading.main_thread())
-            return Curved.residual_and_jacobian(fine, th, t_end)
-
-        fine.residual_and_jacobian = own
-        with discretisation._RUNNING.one() if beside else contextlib.nullcontext():
-            runs[beside] = discretisation._attempt(fine, [(theta, (None,), None)], J, 3 * FRAMES - UNKNOWNS, np.inf)
-        assert all(on_main) == beside, on_main
-        assert runs[beside][3] <= len(on_main)
-    for a, b in zip(runs[False], runs[True], strict=True):
-        np.testing.assert_array_equal(a, b)
-    th, _, _, jacobians, distance = runs[False]
-    assert jacobians >= 2 and distance < discretisation.STILL
-    assert np.all(np.abs(th - best) < 0.05 * se)
 
 
 class Oscillation(Linear):
