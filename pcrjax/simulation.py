@@ -8,6 +8,7 @@ step whose Newton solve did not converge (never returns such a result silently).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -282,8 +283,8 @@ def _start(scene, path=None):
 
 
 @eqx.filter_jit
-def _advance(scene, state, i0, count: int, path=None):
-    return _scan_steps(scene, state, i0, count, path=path)
+def _advance(scene, state, i0, count: int, active, path=None):
+    return _scan_steps(scene, state, i0, count, active, path=path)
 
 
 _COMPILED: dict = {}
@@ -335,17 +336,17 @@ def _kept_advance(scene, state, chunk: int, path):
     compile where a leaf is not an array."""
     leaves, structure = jax.tree.flatten((scene, state, path))
     if not all(isinstance(a, jax.Array | np.ndarray) for a in leaves):
-        return _advance.lower(scene, state, jnp.asarray(0), chunk, path).compile()
+        return _advance.lower(scene, state, jnp.asarray(0), chunk, jnp.asarray(0), path).compile()
 
-    def chunk_of(leaves, i0):
+    def chunk_of(leaves, i0, active):
         sc, st, pa = jax.tree.unflatten(structure, leaves)
-        return jax.tree.leaves(_scan_steps(sc, st, i0, chunk, path=pa))
+        return jax.tree.leaves(_scan_steps(sc, st, i0, chunk, active, path=pa))
 
-    program = traces.compiled(chunk_of, "simulate-chunk", (str(structure), chunk), (leaves, jnp.asarray(0)))
+    program = traces.compiled(chunk_of, "simulate-chunk", (str(structure), chunk), (leaves, jnp.asarray(0), jnp.asarray(0)))
     out = jax.tree.structure((state, _OUTPUTS))
 
-    def run(scene, state, i0, count, path):
-        return jax.tree.unflatten(out, program(jax.tree.leaves((scene, state, path)), i0))
+    def run(scene, state, i0, count, active, path):
+        return jax.tree.unflatten(out, program(jax.tree.leaves((scene, state, path)), i0, active))
 
     return run
 
@@ -411,7 +412,8 @@ def simulate(
     - ``throw``: raise `ConvergenceError` at the first non-converged step (outside traces; under
       a trace this is `rollout`).
     - ``progress``: True for a progress bar, or a callable ``f(done_steps, total_steps)``.
-    - ``chunk``: steps per jitted call (the compiled chunk is reused; the last chunk is padded).
+    - ``chunk``: steps per jitted call. One compiled chunk serves every run of the scene's
+      structure, whatever its length: steps past the run's end hold the state and cost no solve.
     - ``timings``: if a dict, receives ``compile_s`` and ``run_s`` (wall time after compilation).
 
     When a step fails, the steps up to it are kept in the exception's ``partial`` attribute.
@@ -438,6 +440,13 @@ def inverse_dynamics(
     return _run(scene, path, throw, progress, chunk, timings)
 
 
+def _stepper(scene: Scene) -> Scene:
+    """``scene`` as the compiled start and chunk see it: a step does not depend on the run's
+    length or the scene's name, so both are set aside and scenes that differ only there (a
+    longer run, another file of the same robot) share one program."""
+    return dataclasses.replace(scene, name="scene", solver=dataclasses.replace(scene.solver, steps=0))
+
+
 def _run(scene, path, throw, progress, chunk, timings) -> Trajectory:
     if any(_is_traced(leaf) for leaf in jax.tree.leaves(scene)):
         return rollout(scene, path=path)
@@ -445,7 +454,8 @@ def _run(scene, path, throw, progress, chunk, timings) -> Trajectory:
         raise SceneError("effects.inertia is false: the scene is static; use `pcrjax static`")
     check_structure(scene)
     steps = scene.solver.steps
-    chunk = max(1, min(chunk, steps))
+    named, scene = scene, _stepper(scene)
+    chunk = max(1, int(chunk))
     n_chunks = -(-steps // chunk)
     t_c0 = time.perf_counter()
     static, state, compiled = _start_and_chunk(scene, path, chunk)
@@ -461,14 +471,14 @@ def _run(scene, path, throw, progress, chunk, timings) -> Trajectory:
         try:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=steps, unit="step", desc=scene.name, leave=False)
+            bar = tqdm(total=steps, unit="step", desc=named.name, leave=False)
         except ImportError:  # pragma: no cover
             bar = None
     outs_all = []
     t_r0 = time.perf_counter()
     failure = None
     for c in range(n_chunks):
-        state, outs = compiled(scene, state, jnp.asarray(c * chunk), chunk, path)
+        state, outs = compiled(scene, state, jnp.asarray(c * chunk), chunk, jnp.asarray(min(chunk, steps - c * chunk)), path)
         codes = np.asarray(outs[3].result)
         outs_all.append(outs)
         done = min((c + 1) * chunk, steps)
@@ -489,7 +499,7 @@ def _run(scene, path, throw, progress, chunk, timings) -> Trajectory:
         timings.update(compile_s=compile_s, run_s=run_s, steps=n_done)
     if failure is not None:
         try:
-            _raise_first_failure(scene, traj)
+            _raise_first_failure(named, traj)
         except ConvergenceError as e:
             e.partial = traj
             raise

@@ -1,8 +1,12 @@
 """Scene builders for tests (independent of the shipped TOML files), and the recordings'
 generator script as a module."""
 
+import dataclasses
 import importlib.util
 from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
 
 import pcrjax
 from pcrjax import scene_from_dict
@@ -70,3 +74,40 @@ def recording_generator():
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
     return gen
+
+
+# The shared cantilever: one structure that most dynamic cantilever tests run on, varying only
+# numbers, so that they share one compiled start and one compiled chunk of steps. Every effect
+# is compiled in (damping, drag and gravity at zero where a test does not want them: the same
+# equations), and the grid and shooting segments are those its finest step asks for.
+SHARED_DT = 2.5e-4  # s: the finest step the shared cantilever serves
+SHARED_NODES = 20
+
+
+def shared_rod(
+    *, force=(0.0, 0.0, -2.0), dt=5e-3, alpha=-0.4, duration=0.1, tau=0.0, drag=(0.0, 0.0, 0.0), gravity=(0.0, 0.0, 0.0), **kw
+):
+    """A cantilever on the shared structure (`SHARED_NODES` nodes, every effect compiled, the grid
+    of `SHARED_DT`) with these numbers; ``kw`` as `rod_data` (``integrator="euler"`` or other
+    nodes make another structure, shared in turn by the tests that ask for it)."""
+    kw.setdefault("nodes", SHARED_NODES)
+    data = rod_data(
+        force=force,
+        dt=SHARED_DT,
+        alpha=-0.5,
+        duration=duration,
+        effects={"damping": True, "drag": True, "gravity": True},
+        rod_extra={"tau": tau, "drag_coefficients": list(drag)},
+        gravity=gravity,
+        **kw,
+    )
+    return with_numbers(scene_from_dict(data, "<test>"), dt=dt, alpha=alpha, duration=duration)
+
+
+def with_numbers(scene, *, dt, alpha, duration):
+    """``scene`` with another step, alpha and duration, its compiled structure kept (the grid and
+    segments stay those it was built for: a finer structure than these numbers need is valid)."""
+    scene = eqx.tree_at(
+        lambda s: (s.solver.dt, s.solver.alpha), scene, (jnp.asarray(dt, jnp.float64), jnp.asarray(alpha, jnp.float64))
+    )
+    return dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, steps=int(round(duration / dt))))

@@ -102,6 +102,7 @@ def test_non_convergence_reported_with_time_and_partial_output(tmp_path, capsys)
     assert len(rows) >= 3  # header, the initial state and the steps before the failure
 
 
+@pytest.mark.integration  # a fresh process: compiles its programs cold
 def test_console_script_runs_shipped_scene(tmp_path):
     cmd = [sys.executable, "-m", "pcrjax.cli", "static", "cantilever", "--nodes", "10"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -113,6 +114,7 @@ def test_console_script_runs_shipped_scene(tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.integration  # the whole benchmark command: minutes of compiling (the gradients' programs)
 def test_bench_prints_the_table_kernels_and_gradient_cost(capsys, tmp_path):
     args = ["bench", "cantilever", "--nodes", "5", "--euler-nodes", "", "--duration", "0.02", "--reference-nodes", "5"]
     args += ["--gradient", "--gradient-nodes", "5", "--gradient-steps", "3", "--json", str(tmp_path / "b.json")]
@@ -121,24 +123,27 @@ def test_bench_prints_the_table_kernels_and_gradient_cost(capsys, tmp_path):
     assert "kern/node" in out and "forward runs" in out
     rows = json.loads((tmp_path / "b.json").read_text())
     assert [r["case"] for r in rows["rows"]] == ["thesis", "till"]
-    # An RK4 node step is at least four right-hand sides. The gradient's cost is a timing: its
-    # figure is printed, not compared (wall-clock ratios are noisy on a shared machine).
-    assert (
-        all(r["kernels_per_node_step"] >= 4 for r in rows["rows"])
-        and rows["gradient"]["ratio"] > 0
-        and rows["gradient"]["reverse_ratio"] > 0
+    # An RK4 node step is at least four right-hand sides, and a residual's scan runs whole node
+    # steps, at most the N = 5 of the grid one after the other. Timings and ratios are printed,
+    # not compared (wall-clock figures are noisy on a shared machine).
+    assert all(r["kernels_per_node_step"] >= 4 for r in rows["rows"])
+    assert all(
+        r["kernels_per_residual"] % r["kernels_per_node_step"] == 0
+        and r["kernels_per_residual"] <= 5 * r["kernels_per_node_step"]
+        for r in rows["rows"]
     )
-    # one residual's scan: N node steps, or N/M where M equal segments run side by side
-    scan = {r["case"]: 5 // r["segments"] if 5 % r["segments"] == 0 else 5 for r in rows["rows"]}
-    assert all(r["kernels_per_residual"] == r["kernels_per_node_step"] * scan[r["case"]] for r in rows["rows"])
-    assert all(r["position_error_m"] > 0 and r["realtime_factor"] > 0 for r in rows["rows"])
+    # The reference here is the rows' own grid (RK4, N 5, same dt) solved to 1e-12: the rows
+    # differ from it by their Newton tolerance only, far below a micron.
+    assert all(0 <= r["position_error_m"] < 1e-6 for r in rows["rows"])
+    assert rows["gradient"]["scalars"] == 2 and rows["gradient"]["steps"] == 3
 
 
+@pytest.mark.integration  # the batch benchmark command: a batched program per batch size
 def test_bench_batch_prints_the_integrations_ceiling_and_matches_single_runs(capsys, tmp_path):
     args = ["bench", "batch", "--batches", "1,3", "--nodes", "5", "--gradient-steps", "3", "--json", str(tmp_path / "b.json")]
     assert main(args) == 0
     assert "The legs' integration alone" in capsys.readouterr().out
     rows = json.loads((tmp_path / "b.json").read_text())["rows"]
     assert [r["batch"] for r in rows] == [1, 3]
-    # members equal their single runs (to round-off); gains are positive numbers, not asserted
-    assert all(r["max_rel_diff"] < 1e-10 and r["integration_gain"] > 0 for r in rows)
+    # members equal their single runs (to round-off); gains are timings: printed, not compared
+    assert all(r["max_rel_diff"] < 1e-10 for r in rows)

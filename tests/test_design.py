@@ -44,8 +44,9 @@ def test_correction_basis_is_smooth_and_vanishes_at_the_ends():
 
 
 # Slow (3-5 min cold): reverse mode through a rollout is checked against central differences in
-# the default run by quickstart.ipynb and test_gradients (checkpointed); design's LM path (forward
-# mode) by test_cli_design_small_move and inverse_and_design.ipynb reaching their quieter moves.
+# the default run by test_gradients (checkpointed) and test_adam_gradient_is_the_central_difference, and
+# in CI's notebook set by quickstart.ipynb; design's LM path (forward mode) in CI's integration and
+# notebook sets by test_cli_design_small_move and inverse_and_design.ipynb reaching their quieter moves.
 @pytest.mark.slow
 def test_vibration_gradient_matches_central_differences():
     sc = _triskele(nodes=5, dt=5e-4, tol=1e-13)
@@ -66,10 +67,9 @@ def test_vibration_gradient_matches_central_differences():
     assert np.abs(g - fd).max() < 1e-6 * np.abs(fd).max()
 
 
-def test_adam_gradient_is_the_central_difference_and_the_cli_runs_adam(tmp_path):
+def test_adam_gradient_is_the_central_difference():
     """Adam's gradient (`MovePrograms.gradient`, the path `--method adam` takes) against central
-    differences of the same program's residuals, then ``pcrjax design --method adam`` end to end
-    on a small move."""
+    differences of the same program's residuals."""
     sc = _triskele(nodes=5, dt=5e-4, tol=1e-13)
     move, scene = design.plan_move(sc, [3e-6, 1e-6, 0.0], [0.0, 0.0, 1e-4], 5e-3, 5e-3, count=2)
     progs = design.MovePrograms(scene, 0.05)
@@ -86,6 +86,11 @@ def test_adam_gradient_is_the_central_difference_and_the_cli_runs_adam(tmp_path)
     h = 1e-9
     fd = np.array([(ss(c.at[i].add(h)) - ss(c.at[i].add(-h))) / (2 * h) for i in range(6)])
     assert np.abs(np.asarray(g) - fd).max() < 1e-6 * np.abs(fd).max()
+
+
+@pytest.mark.integration  # the whole command: its own reverse-mode gradient program, minutes cold
+def test_cli_runs_adam(tmp_path):
+    """``pcrjax design --method adam`` end to end on a small move."""
     out = tmp_path / "adam"
     argv = ["design", "triskele", "--dx", "5e-6", "--time", "0.01", "--settle", "0.006", "--knots", "2", "--iterations", "3"]
     assert cli.main(argv + ["--method", "adam", "--nodes", "5", "--dt", "5e-4", "--out", str(out), "--quiet"]) == 0
@@ -93,6 +98,7 @@ def test_adam_gradient_is_the_central_difference_and_the_cli_runs_adam(tmp_path)
     assert summary["method"] == "adam" and len(summary["objective_m2"]) == 4
 
 
+@pytest.mark.integration  # the whole command: the LM design's programs, minutes cold
 def test_cli_design_small_move(tmp_path):
     out = tmp_path / "d"
     argv = ["design", "triskele", "--dx", "5e-6", "--time", "0.01", "--settle", "0.006", "--knots", "2", "--iterations", "2"]

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import rod_scene
+from helpers import shared_rod
 from oracles import first_frequency_hz, fit_sinusoids, window_amplitudes
 
 import pcrjax
@@ -22,7 +22,7 @@ def _tip_z(scene):
 def test_first_frequency_matches_euler_bernoulli():
     assert abs(F1 - 8.895) < 1e-3
     dt = 0.05 / W1  # trapezoidal period error (h^2/12) ~ 2e-4 relative
-    t, z = _tip_z(rod_scene(force=(0, 0, -1e-3), nodes=40, dt=dt, alpha=-0.5, duration=1.2))
+    t, z = _tip_z(shared_rod(force=(0, 0, -1e-3), dt=dt, alpha=-0.5, duration=1.2))
     (w1, _), (w2, _) = fit_sinusoids(t, z, [W1, 6.27 * W1])[0]
     f = w1 / (2 * math.pi)
     assert abs(f / 8.895 - 1) < 1e-3, f
@@ -33,7 +33,7 @@ def test_bdf_alpha_numerical_damping_at_h_half(alpha, expected):
     # h = omega dt = 0.5 for the first mode; amplitude ratio over one true period 2 pi / omega.
     dt = 0.5 / W1
     periods = 22 if alpha == -0.5 else 12
-    t, z = _tip_z(rod_scene(force=(0, 0, -1e-3), nodes=20, dt=dt, alpha=alpha, duration=periods / F1))
+    t, z = _tip_z(shared_rod(force=(0, 0, -1e-3), dt=dt, alpha=alpha, duration=periods / F1))
     skip = t > 2.0 / F1  # higher modes of alpha > -0.5 are damped within two periods
     (w1, _), (w2, _) = fit_sinusoids(t[skip], z[skip], [0.97 * W1, 3.0 / dt])[0]
     centres, amps = window_amplitudes(t[skip], z[skip], w1, [w2])
@@ -50,11 +50,9 @@ def test_bdf_alpha_numerical_damping_at_h_half(alpha, expected):
         assert abs(ratio**20 - 1) < 1e-3, amps  # no decay over 20 periods
 
 
-def _rest_drift(integrator, nodes):
+def _rest_drift(integrator):
     # Load held for the whole run: the static equilibrium should be a solution of every step.
-    scene = rod_scene(
-        force=(0, 0, -2.0), release_time=10.0, nodes=nodes, dt=5e-3, alpha=-0.2, duration=0.25, integrator=integrator
-    )
+    scene = shared_rod(force=(0, 0, -2.0), release_time=10.0, dt=5e-3, alpha=-0.2, duration=0.25, integrator=integrator)
     tr = pcrjax.simulate(scene)
     return np.abs(np.asarray(tr.position) - np.asarray(tr.position)[0]).max()
 
@@ -64,16 +62,14 @@ def test_equilibrium_stays_put_when_load_is_held(integrator):
     # RK4 keeps the previous step's values at its stage points (rod_history.py), so a rod at
     # rest has z_t = 0 at every evaluation point and nothing moves; interpolating the whole
     # history there (thesis eq. 3.39) drifted by 1.4e-5 m at N = 10.
-    assert _rest_drift(integrator, 10) < 1e-12
+    assert _rest_drift(integrator) < 1e-12
 
 
 def test_kelvin_voigt_damping_matches_modal_damping_ratio():
     # B = tau K: mode 1 damping ratio zeta = tau omega / 2 (Euler-Bernoulli with Kelvin-Voigt).
     tau = 2e-4
     dt = 0.05 / W1
-    scene = rod_scene(
-        force=(0, 0, -1e-3), nodes=20, dt=dt, alpha=-0.5, duration=0.8, effects={"damping": True}, rod_extra={"tau": tau}
-    )
+    scene = shared_rod(force=(0, 0, -1e-3), dt=dt, alpha=-0.5, duration=0.8, tau=tau)
     t, z = _tip_z(scene)
     (w1, s1), _ = fit_sinusoids(t, z, [W1, 6.27 * W1], decaying=True)[0]
     zeta = -s1 / math.hypot(s1, w1)
@@ -93,15 +89,7 @@ def test_quadratic_air_drag_matches_single_mode_theory():
     c_eff = Cx * np.trapezoid(np.abs(phi) ** 3, s)
     k_theory = 4 * W1 / (3 * math.pi) * c_eff / m_eff
     dt = 0.05 / W1
-    scene = rod_scene(
-        force=(0, 0, -0.02),
-        nodes=20,
-        dt=dt,
-        alpha=-0.5,
-        duration=1.0,
-        effects={"drag": True},
-        rod_extra={"drag_coefficients": [Cx, Cx, 0.0]},
-    )
+    scene = shared_rod(force=(0, 0, -0.02), dt=dt, alpha=-0.5, duration=1.0, drag=(Cx, Cx, 0.0))
     t, z = _tip_z(scene)
     (w1, _), (w2, _) = fit_sinusoids(t, z, [W1, 6.27 * W1])[0]
     centres, amps = window_amplitudes(t, z, w1, [w2])
@@ -115,11 +103,12 @@ def test_released_rod_converges_at_second_order_in_the_time_step():
     """Scheme theory: BDF-alpha is second order, so halving dt quarters the error. A release at
     t = 0 makes the accelerations jump; started from the rest history's rates (zero, those before
     the jump) the scheme lagged the motion by dt/2, a first-order error (ratios 2.1-2.4 measured).
-    The first step is backward Euler (`bdf_alpha.starting`): ratios 4.1-4.2."""
+    The first step is backward Euler (`bdf_alpha.starting`): ratios 4.1-4.2. Every dt runs on
+    one grid (the shared structure's), so the differences hold the time error alone."""
     tips = []
     for dt in (2e-3, 1e-3, 5e-4, 2.5e-4):
-        scene = rod_scene(nodes=10, dt=dt, alpha=-0.45, duration=0.1, effects={"damping": True}, rod_extra={"tau": 1.9e-3})
-        tips.append(np.asarray(pcrjax.simulate(scene, chunk=50).position)[-1])  # one program for every dt
+        scene = shared_rod(dt=dt, alpha=-0.45, duration=0.1, tau=1.9e-3)
+        tips.append(np.asarray(pcrjax.simulate(scene).position)[-1])
     diffs = [np.linalg.norm(a - b) for a, b in zip(tips, tips[1:])]
     ratios = [a / b for a, b in zip(diffs, diffs[1:])]
     assert all(r > 3.5 for r in ratios), (diffs, ratios)

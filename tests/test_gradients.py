@@ -5,6 +5,8 @@ for the tau-damped rollout (forward columns by default, reverse mode asked for),
 for the Bse/Bbt one.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -79,6 +81,24 @@ def _dyn_scene(damping):
     )
 
 
+def _params(scene):
+    rod = scene.legs.rod
+    return {"length": rod.length[0], "E": rod.youngs_modulus[0], "tau": rod.damping.tau[0]}
+
+
+@functools.cache
+def _rollout_gradient(checkpoint, forward_columns, batched=False):
+    """``jax.value_and_grad`` of the end's final z after 50 steps of the tau-damped rod with
+    respect to its length, E and tau, jitted once a process (the tests below share it)."""
+    scene = _dyn_scene({"tau": 2e-4})
+
+    def end_z(p):
+        return pcrjax.rollout(apply(scene, p), checkpoint=checkpoint, forward_columns=forward_columns).position[-1, 2]
+
+    vg = jax.value_and_grad(end_z)
+    return scene, jax.jit(jax.vmap(vg) if batched else vg)
+
+
 # Three scalars: by default `rollout` takes their derivatives in forward mode whatever the AD mode
 # (`numerics.few_inputs`); ``forward_columns=0`` asks for JAX's reverse mode, here through
 # checkpointed chunks of 7 steps (the last one partial). Plain reverse mode is slow to save a compile.
@@ -88,16 +108,10 @@ def _dyn_scene(damping):
     ids=["forward-for-few", "reverse-checkpointed", "reverse"],
 )
 def test_rollout_gradient_after_50_steps_length_E_tau(checkpoint, forward_columns):
-    scene = _dyn_scene({"tau": 2e-4})
+    scene, vg = _rollout_gradient(checkpoint, forward_columns)
     assert scene.solver.steps == 50
-    params = {"length": scene.legs.rod.length[0], "E": scene.legs.rod.youngs_modulus[0], "tau": scene.legs.rod.damping.tau[0]}
-
-    def end_z(p):
-        return pcrjax.rollout(apply(scene, p), checkpoint=checkpoint, forward_columns=forward_columns).position[-1, 2]
-
-    # One program for both: the differences evaluate the value half of value_and_grad.
-    vg = jax.jit(jax.value_and_grad(end_z))
-    g = vg(params)[1]
+    params = _params(scene)
+    g = vg(params)[1]  # one program for both: the differences evaluate its value half
     for k in params:
         _check(g[k], _central(lambda p: vg(p)[0], params, k), k)
 
@@ -116,15 +130,17 @@ def test_rollout_jacfwd_after_50_steps_bbt():
 
 
 def test_batched_rollout_gradients_are_each_members_reverse_mode_gradient():
-    """`jax.vmap(jax.grad(...))` over three rod lengths (forward columns, batched Newton) equals
-    each member's gradient by JAX's reverse mode (``forward_columns=0``), to 1e-12."""
-    scene = pcrjax.with_solver(rod_scene(force=(0, 0, -0.5), nodes=6, dt=2e-3, duration=0.03), tol=1e-12)
-
-    def end_z(length, columns=None):
-        return pcrjax.rollout(apply(scene, {"length": length}), forward_columns=columns).position[-1, 2]
-
-    lengths = scene.legs.rod.length[0] * np.array([1.0, 1.05, 0.95])
-    batched = jax.jit(jax.vmap(jax.grad(end_z)))(lengths)
-    reverse = jax.jit(jax.grad(lambda length: end_z(length, 0)))
-    for L, g in zip(lengths, batched, strict=True):
-        np.testing.assert_allclose(g, reverse(L), rtol=1e-12)
+    """`jax.vmap(jax.grad(...))` over three rods (lengths, E and tau apart; forward columns,
+    batched Newton) equals each member's gradient by JAX's reverse mode (``forward_columns=0``,
+    checkpointed: the program the test above checks against central differences), to 1e-12."""
+    scene, batched = _rollout_gradient(None, None, batched=True)
+    _, reverse = _rollout_gradient(7, 0)
+    one = _params(scene)
+    scale = {"length": [1.0, 1.05, 0.95], "E": [1.0, 0.9, 1.1], "tau": [1.0, 2.0, 0.5]}
+    members = {k: one[k] * np.array(scale[k]) for k in one}
+    values, grads = batched(members)
+    for i in range(3):
+        value, grad = reverse({k: members[k][i] for k in one})
+        np.testing.assert_allclose(values[i], value, rtol=1e-12)
+        for k in one:
+            np.testing.assert_allclose(grads[k][i], grad[k], rtol=1e-12, err_msg=k)

@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import recording_generator
+from helpers import recording_generator, with_numbers
 
 import pcrjax
 from identify import experiment, modes, platform_screen, start
@@ -82,18 +82,27 @@ def test_latin_hypercube_starts_at_the_centre_and_fills_each_stratum_once():
         assert sorted(strata) == list(range(8))
 
 
+def _damped_triskele():
+    """The shipped Triskele with Kelvin-Voigt rods (tau 0.2 ms), N 10, dt 0.1 ms, 0.15 s: the two
+    simulated oracles below share its structure (one compiled start and chunk)."""
+    data = read_toml(scene_path("triskele"))
+    data["effects"] = {**data.get("effects", {}), "damping": True}
+    data["rod"] = {**data.get("rod", {}), "tau": 2e-4}
+    return pcrjax.with_solver(scene_from_dict(data), nodes=10, dt=1e-4, alpha=-0.45, duration=0.15)
+
+
 def test_lumped_platform_modes_are_the_simulated_ones():
     """The Triskele's rods weigh 1e-5 of its platform, so its free motion's modes are those of
     the platform on the rods' static stiffness (`platform_screen.platform_modes`, statics and an
     eigenproblem). Oracle: the frequency of a simulated release (undamped, N 10, dt 0.25 ms) at
     lengths other than nominal, measured by the matrix pencil. Measured: the simulation is 0.55 %
     higher on both modes it shows, the same at a tenth of the push and at half the dt (neither
-    nonlinearity nor time discretisation); the start needs 1 %, which the time-domain fit closes."""
-    sc = pcrjax.load_scene("triskele")
-    sc = pcrjax.with_solver(sc, nodes=10, dt=2.5e-4, alpha=-0.45, duration=0.3)
+    nonlinearity nor time discretisation); the start needs 1 %, which the time-domain fit closes.
+    Run on the damped test's structure below, its tau set to zero."""
+    sc = with_numbers(_damped_triskele(), dt=2.5e-4, alpha=-0.45, duration=0.3)
     lengths = jnp.array([0.0315, 0.0327, 0.0309])
     f_lumped, shape = (np.asarray(a) for a in platform_screen.platform_modes(sc)(jnp.log(lengths)))
-    traj = pcrjax.simulate(experiment.apply(sc, {"lengths": lengths}))
+    traj = pcrjax.simulate(experiment.apply(sc, {"lengths": lengths, "tau": 0.0}))
     m = np.asarray(experiment.planar_pose(sc, traj))[::4]  # 1 kHz
     f, d, s, sh = modes.dominant(np.arange(m.shape[0]) * 1e-3, m, 1e3, 9, 100)
     k = int(np.argmin(np.abs(f_lumped - f[0])))
@@ -107,10 +116,7 @@ def test_lumped_damping_is_tau_times_the_stiffness():
     Oracle: a simulated damped release (N 10, dt 0.1 ms, tau 0.2 ms: zeta 0.04-0.1), its modes
     read by the matrix pencil. Measured: decays within 3 % (the integrator's own damping adds
     1-2 %), frequencies within 0.6 % (the undamped test's offset)."""
-    data = read_toml(scene_path("triskele"))
-    data["effects"] = {**data.get("effects", {}), "damping": True}
-    data["rod"] = {**data.get("rod", {}), "tau": 2e-4}
-    sc = pcrjax.with_solver(scene_from_dict(data), nodes=10, dt=1e-4, alpha=-0.45, duration=0.15)
+    sc = _damped_triskele()
     lengths, tau = jnp.array([0.0315, 0.0327, 0.0309]), 2e-4
     _, w, _, ok = platform_screen.lumped_modes(sc)(jnp.log(lengths))
     assert bool(ok)
@@ -813,8 +819,9 @@ def test_rod_tip_angle_is_the_tangent_angle_in_the_bending_plane():
         assert abs(theta - expected) < 1e-4 and abs(theta) > 1e-3
 
 
+@pytest.mark.integration  # the whole command: fit, profiles, three refinements
 def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsys, monkeypatch):
-    """The whole `pcrjax-identify` path on a small case, in the default run: a cantilever
+    """The whole `pcrjax-identify` path on a small case (the integration set): a cantilever
     recording (0.2 s at 1 kHz) whose truth is simulated on a grid 3x finer in space and 40x in
     time than the fit's (N 6, dt 2 ms), fitted from tau a factor 3 off and the length 1.6 mm off
     (residuals, Jacobians, Levenberg-Marquardt over the windows, the noise re-estimated, the
@@ -941,8 +948,9 @@ def test_cli_keeps_the_fits_own_answer_when_the_refinements_are_interrupted(tmp_
     assert "stays in" in printed.err and "resume" in printed.err
 
 
+@pytest.mark.integration  # the whole command on a Triskele: screen, ranking, fit
 def test_cli_fits_a_short_triskele_push_release_from_a_finer_grid_end_to_end(tmp_path, capsys):
-    """The Triskele-bot's whole `pcrjax-identify` path in the default run: a push-release
+    """The Triskele-bot's whole `pcrjax-identify` path (the integration set): a push-release
     recording of 0.4 s whose truth is drawn at random inside the prior (the random suite's
     generator with a seed no fit was developed on), simulated 3x finer in space and extrapolated
     to dt 0 from 2.5x and 5x finer in time, fitted from the nominal lengths and the sidecar's tau
@@ -1129,8 +1137,9 @@ def test_jacobian_holding_step_jacobians_at_rest_is_the_finite_differences():
         _assert_column_is(J, fd, i, name)
 
 
+@pytest.mark.integration  # the whole command with a refinement
 def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
-    """``pcrjax-identify --fit tau,youngs_modulus`` end to end on a small case (the default run):
+    """``pcrjax-identify --fit tau,youngs_modulus`` end to end on a small case (the integration set):
     a 0.2 s cantilever recording at 1 kHz, its E drawn at random within 10 % of the scene's and
     simulated on a grid 3x finer in space and 5x in time than the fit's (N 6, dt 2 ms), fitted
     from the scene's E and tau a factor 3 off, with one refinement: E and tau within 3 combined
@@ -1186,6 +1195,7 @@ def test_summary_of_a_cantilever_and_a_triskele_fit_gives_each_number_its_column
     assert cells[2]["status"] == "failed" and all(cells[2][c] == "" for c in head[4:])
 
 
+@pytest.mark.integration  # Dask worker processes, each compiling cold
 def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_path, capsys):
     """``pcrjax-identify A.csv B.csv --out DIR [--cluster local:2]``: two small cantilever
     recordings (0.1 s, other truths, simulated 3x finer in space and 5x in time than the fit's

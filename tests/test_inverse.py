@@ -74,7 +74,7 @@ def _circle(duration):
     return PosePath.from_samples(t[keep], v[keep])
 
 
-# The default run makes these same checks in notebooks/inverse_and_design.ipynb (N 10, 0.3 s of the
+# CI's notebook set makes these same checks in notebooks/inverse_and_design.ipynb (N 10, 0.3 s of the
 # circle, quick mode): here both lengths are slow, to compile the circle's programs once per run.
 @pytest.mark.slow
 @pytest.mark.parametrize("duration,nodes", [(0.15, 10), (2.419, 50)])

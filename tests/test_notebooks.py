@@ -37,6 +37,7 @@ def test_notebook_is_stripped(path):
             assert not cell.outputs and cell.execution_count is None, f"{path.name}: outputs committed (strip them)"
 
 
+@pytest.mark.notebooks
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_runs(path, monkeypatch):
     mode = os.environ.get("PCRJAX_NOTEBOOKS", "quick")

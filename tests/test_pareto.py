@@ -75,7 +75,7 @@ def test_pareto_command_on_a_small_scene(tmp_path, capsys):
     rows = list(csv.DictReader(open(out / "pareto.csv")))
     assert all(r["resolved"] in ("0", "1") for r in rows)
     fams = [r["family"] for r in rows]
-    # the lumped family only (sweeps_and_accuracy.ipynb runs the dt family in the default run)
+    # the lumped family only (sweeps_and_accuracy.ipynb runs the dt family in CI's notebook set)
     assert fams.count("thesis") == 1 and fams.count("lumped") == 2 and len(fams) == 3, fams
     err = {r["label"]: float(r["error"]) for r in rows}
     assert all(np.isfinite(e) and e > 0 for e in err.values()), err

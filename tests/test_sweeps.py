@@ -133,6 +133,7 @@ def test_cli_sweep_bad_memory_one_line_exit_2(tmp_path, capsys, memory):
     assert not (tmp_path / "o" / "sweep.csv").exists()
 
 
+@pytest.mark.integration  # two Dask worker processes, each compiling cold
 def test_sweep_on_a_local_dask_cluster_equals_the_in_process_sweep(tmp_path):
     """Six static members in batches of three on two Dask worker processes: the same table,
     to the last digit, as in this process (the workers run the same programs on the same inputs)."""
@@ -168,6 +169,7 @@ np.save(sys.argv[2], np.stack([sw.outputs[k] for k in ("x_m", "z_m", "ry_rad", "
 """
 
 
+@pytest.mark.integration  # a fresh process with two forced host devices
 def test_members_sharded_across_two_cpu_devices_equal_one_device(tmp_path):
     """The members axis split across two (forced host) CPU devices with `jax.sharding`, the batch
     of three padded to four: the same equilibria as on one device."""
