@@ -111,3 +111,15 @@ def with_numbers(scene, *, dt, alpha, duration):
         lambda s: (s.solver.dt, s.solver.alpha), scene, (jnp.asarray(dt, jnp.float64), jnp.asarray(alpha, jnp.float64))
     )
     return dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, steps=int(round(duration / dt))))
+
+
+def committed_recording(name: str, folder) -> tuple[Path, dict]:
+    """``experiments_data/tests/NAME`` (made by ``experiments_data/test_recordings.py``: its truth
+    simulated finer than the fit's grid) copied into ``folder``: its path and its sidecar's truth."""
+    from identify.recording import load_recording
+
+    source = Path(__file__).resolve().parent.parent / "experiments_data" / "tests"
+    for suffix in (".csv", ".toml"):
+        (Path(folder) / f"{name}{suffix}").write_bytes((source / f"{name}{suffix}").read_bytes())
+    path = Path(folder) / f"{name}.csv"
+    return path, dict(load_recording(path).truth)

@@ -44,9 +44,10 @@ def test_correction_basis_is_smooth_and_vanishes_at_the_ends():
 
 
 # Slow (3-5 min cold): reverse mode through a rollout is checked against central differences in
-# the default run by test_gradients (checkpointed) and test_adam_gradient_is_the_central_difference, and
-# in CI's notebook set by quickstart.ipynb; design's LM path (forward mode) in CI's integration and
-# notebook sets by test_cli_design_small_move and inverse_and_design.ipynb reaching their quieter moves.
+# the default run by test_gradients (cantilever, checkpointed), in CI's integration set by
+# test_adam_gradient_is_the_central_difference and in its notebook set by quickstart.ipynb; design's LM
+# path (forward mode) there too, by test_cli_design_small_move and inverse_and_design.ipynb reaching
+# their quieter moves.
 @pytest.mark.slow
 def test_vibration_gradient_matches_central_differences():
     sc = _triskele(nodes=5, dt=5e-4, tol=1e-13)
@@ -67,6 +68,7 @@ def test_vibration_gradient_matches_central_differences():
     assert np.abs(g - fd).max() < 1e-6 * np.abs(fd).max()
 
 
+@pytest.mark.integration  # reverse mode through a Triskele rollout: minutes of compiling
 def test_adam_gradient_is_the_central_difference():
     """Adam's gradient (`MovePrograms.gradient`, the path `--method adam` takes) against central
     differences of the same program's residuals."""
@@ -168,6 +170,7 @@ def _lag_bound(t, a_inverse, vmax, G):
     return lag / np.linalg.norm(G, 2)
 
 
+@pytest.mark.integration  # the whole tracking command and a second design: the costliest programs
 def test_design_tracks_a_path_within_the_speed_limit(tmp_path):
     """The shipped 1 mm move in 0.3 s needs 5.9 mm/s of the SLC-1730's 2 mm/s stages. The tracking
     design stays within the limit (by construction), lags the path no less than the speed limit

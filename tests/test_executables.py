@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from helpers import rod_scene
+from helpers import rod_scene, shared_rod
 
 import pcrjax
 from pcrjax import executables, simulation
@@ -11,7 +11,7 @@ pytestmark = pytest.mark.skipif(executables.map_count() is None, reason="no /pro
 
 
 def test_compiled_code_holds_memory_mappings_and_release_returns_them():
-    scene = rod_scene(nodes=6, dt=5e-3, duration=0.02)
+    scene = shared_rod(duration=0.02)
     pcrjax.release_compiled()
     before = executables.map_count()
     pcrjax.simulate(scene)
@@ -23,7 +23,7 @@ def test_compiled_code_holds_memory_mappings_and_release_returns_them():
 
 
 def test_make_room_releases_before_a_new_structure_near_the_cap(monkeypatch):
-    a, b = rod_scene(nodes=6, dt=5e-3, duration=0.02), rod_scene(nodes=7, dt=5e-3, duration=0.02)
+    a, b = shared_rod(duration=0.02), rod_scene(nodes=7, dt=5e-3, duration=0.02)
     first = pcrjax.simulate(a)
     # A cap the process is already past: the next new structure must release the old ones first.
     monkeypatch.setattr(executables, "map_limit", lambda: 100)

@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import recording_generator, with_numbers
+from helpers import committed_recording, recording_generator, with_numbers
 
 import pcrjax
 from identify import experiment, modes, platform_screen, start
@@ -830,12 +830,7 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
     uncertainties, and the wild frames reported."""
     from identify import cli
 
-    gen = recording_generator()
-    spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
-    spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
-    spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=5e-5)
-    spec["rod"] = dict(tau=3 * spec["truth"]["tau"])
-    path = gen.generate("small_release", spec, tmp_path)
+    path, truth = committed_recording("small_release", tmp_path)
     # a decoding error now and then: 2 % of the frames thrown 5 mm off (the noise is 2 um)
     rec = load_recording(path)
     wild = np.random.default_rng(3).choice(rec.frames, size=rec.frames // 50, replace=False)
@@ -883,7 +878,6 @@ def test_cli_fits_a_small_recording_from_a_finer_grid_end_to_end(tmp_path, capsy
         ratio = np.asarray(res["statistical_errors"][name]) / np.asarray(res["standard_errors"][name])
         assert np.all((ratio >= 1) & (ratio < 1.2)), (name, ratio)
     assert np.allclose(sorted(res["outliers"]), np.sort(rec.t[wild])), (res["outliers"], np.sort(rec.t[wild]))
-    truth = spec["truth"]
     for name in ("tau", "lengths", "time_offset"):
         stat = res["statistical_errors"][name]
         err = np.hypot(stat, res["discretisation_errors"][name])
@@ -961,16 +955,12 @@ def test_cli_fits_a_short_triskele_push_release_from_a_finer_grid_end_to_end(tmp
     must reach: the lengths within 20 um of the truth (the prior is +-2 mm) and tau within 5 %."""
     from identify import cli
 
-    gen = recording_generator()
-    spec = dict(gen.random_suite(seed=7)["triskele_push_release_r1"], seconds=0.4)
-    spec["truth_solver"] = dict(spec["solver"], nodes=30, dt=1e-4)
-    path = gen.generate("short_push_release", spec, tmp_path)
+    path, truth = committed_recording("short_push_release", tmp_path)
     out = tmp_path / "fit"
     assert cli.main([str(path), "--out", str(out), "--refine", "0"]) == 0
     printed = capsys.readouterr().out
     print(printed)
     res = json.loads((out / "fit.json").read_text())
-    truth = spec["truth"]
     assert res["converged"] and 0.5 < res["loss"] < 2.0
     assert np.all(np.abs(np.asarray(res["values"]["lengths"]) - truth["lengths"]) < 20e-6), (res["values"]["lengths"], truth)
     assert res["values"]["tau"] == pytest.approx(truth["tau"], rel=0.05)
@@ -1146,15 +1136,7 @@ def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
     uncertainties, and E printed in GPa."""
     from identify import cli
 
-    gen = recording_generator()
-    spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.2)
-    spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
-    spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
-    nominal_E = float(read_toml(scene_path("cantilever"))["rod"]["youngs_modulus"])
-    E = nominal_E * np.random.default_rng(29).uniform(0.9, 1.1)
-    spec["truth"] = dict(spec["truth"], lengths=0.4, youngs_modulus=E)  # the length is known: E alone sets the stiffness
-    spec["rod"] = dict(tau=3 * spec["truth"]["tau"])
-    path = gen.generate("small_release_E", spec, tmp_path)
+    path, truth = committed_recording("small_release_E", tmp_path)  # the length is known: E alone sets the stiffness
     out = tmp_path / "fit"
     assert cli.main([str(path), "--out", str(out), "--fit", "tau,youngs_modulus", "--start", "given", "--refine", "1"]) == 0
     printed = capsys.readouterr().out
@@ -1163,9 +1145,8 @@ def test_cli_fits_youngs_modulus_from_a_finer_grid(tmp_path, capsys):
     res = json.loads((out / "fit.json").read_text())
     for name in ("tau", "youngs_modulus"):
         err = np.hypot(res["standard_errors"][name], res["discretisation_errors"][name])
-        truth = spec["truth"][name]
-        assert abs(res["values"][name] - truth) < 3 * err, (name, res["values"][name], truth, err)
-        assert err < 0.01 * truth  # and pinned: E was 1-10 % off at the start
+        assert abs(res["values"][name] - truth[name]) < 3 * err, (name, res["values"][name], truth[name], err)
+        assert err < 0.01 * truth[name]  # and pinned: E was 1-10 % off at the start
 
 
 def test_summary_of_a_cantilever_and_a_triskele_fit_gives_each_number_its_column(tmp_path):
@@ -1206,14 +1187,7 @@ def test_several_recordings_fitted_here_and_on_a_local_dask_cluster_agree(tmp_pa
     pytest.importorskip("dask.distributed")
     from identify import cli
 
-    gen = recording_generator()
-    paths = []
-    for name, tau in (("small_a", 1.5e-3), ("small_b", 3e-3)):
-        spec = dict(gen.RECORDINGS["cantilever_release"], seconds=0.1)
-        spec["solver"] = dict(spec["solver"], nodes=6, dt=2e-3)
-        spec["truth_solver"] = dict(spec["solver"], nodes=18, dt=4e-4)
-        spec["truth"] = dict(spec["truth"], tau=tau)
-        paths.append(str(gen.generate(name, spec, tmp_path)))
+    paths = [str(committed_recording(name, tmp_path)[0]) for name in ("small_a", "small_b")]
     # a recording whose sidecar the scene refuses (a negative radius): read fine, its fit fails
     broken = tmp_path / "broken.csv"
     broken.write_text(Path(paths[0]).read_text())
