@@ -11,7 +11,7 @@ from pcrjax.robots import dynamics
 
 
 def _step_hlo(scene):
-    static, state = simulation._start(scene)
+    state = jax.eval_shape(simulation._start, scene)[1]  # the step's state, traced and lowered, never compiled
     fn = jax.jit(lambda sc, st: dynamics.step(sc, st, jnp.asarray(0.01)))
     return fn.lower(scene, state).as_text(debug_info=True)
 
