@@ -141,6 +141,7 @@ def test_cli_design_refuses_a_move_no_trajectory_can_make(tmp_path, capsys):
     assert rc == 2 and "no trajectory makes the move in 0.01 s" in err and err.count("\n") == 1, err
 
 
+@pytest.mark.integration  # the whole command: a design per trial duration, minutes cold
 def test_cli_design_fastest_move(tmp_path):
     """The fastest 5 um move that stays within the SLC-1730's 2 mm/s and settles into +-1 um
     (on the finer grid) by the end of the move: no faster than the stroke at top speed allows
