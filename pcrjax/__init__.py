@@ -16,7 +16,7 @@ damping against dt, alpha and N), `lumped` (the lumped model of thesis 3.1, with
 from .config import enable_compilation_cache
 from .errors import ConvergenceError, SceneError
 from .executables import release_compiled
-from .io.scene_file import load_scene, scene_from_dict, shipped_scenes, with_solver
+from .io.scene_file import load_scene, scene_from_dict, shipped_scenes, with_solver, with_step
 from .numerics import results
 from .robots.scene import Scene
 from .robots.signals import PosePath
@@ -43,5 +43,6 @@ __all__ = [
     "solve_static",
     "sweep",
     "with_solver",
+    "with_step",
 ]
 __version__ = "0.1.0"

@@ -1,12 +1,8 @@
 """Scene builders for tests (independent of the shipped TOML files), and the recordings'
 generator script as a module."""
 
-import dataclasses
 import importlib.util
 from pathlib import Path
-
-import equinox as eqx
-import jax.numpy as jnp
 
 import pcrjax
 from pcrjax import scene_from_dict
@@ -105,12 +101,8 @@ def shared_rod(
 
 
 def with_numbers(scene, *, dt, alpha, duration):
-    """``scene`` with another step, alpha and duration, its compiled structure kept (the grid and
-    segments stay those it was built for: a finer structure than these numbers need is valid)."""
-    scene = eqx.tree_at(
-        lambda s: (s.solver.dt, s.solver.alpha), scene, (jnp.asarray(dt, jnp.float64), jnp.asarray(alpha, jnp.float64))
-    )
-    return dataclasses.replace(scene, solver=dataclasses.replace(scene.solver, steps=int(round(duration / dt))))
+    """``scene`` with another step, alpha and duration, its compiled structure kept (`pcrjax.with_step`)."""
+    return pcrjax.with_step(scene, dt, alpha=alpha, duration=duration)
 
 
 def committed_recording(name: str, folder) -> tuple[Path, dict]:

@@ -355,6 +355,24 @@ def with_solver(scene: Scene, **changes) -> Scene:
     return dataclasses.replace(scene, solver=make_solver(scene.legs.rod, lengths, **cur))
 
 
+def with_step(scene: Scene, dt, *, alpha=None, duration=None) -> Scene:
+    """A copy of ``scene`` with another time step (and alpha, duration), its compiled structure
+    kept: the shooting segments and the internal grid stay those it was built for, which serve a
+    coarser step too (build the scene for the finest step it will take). Runs at several steps then
+    share one compiled program, and one spatial grid."""
+    s = scene.solver
+    duration = float(s.steps * s.dt) if duration is None else float(duration)
+    alpha = s.alpha if alpha is None else alpha
+    if not float(dt) > 0:
+        raise SceneError(f"dt must be > 0, got {dt}")
+    if not -0.5 <= float(alpha) <= 0.0:
+        raise SceneError(f"alpha must lie in [-0.5, 0], got {float(alpha)}")
+    solver = dataclasses.replace(
+        s, dt=jnp.asarray(dt, jnp.float64), alpha=jnp.asarray(alpha, jnp.float64), steps=int(round(duration / float(dt)))
+    )
+    return dataclasses.replace(scene, solver=solver)
+
+
 SG_DEFAULTS = dict(
     base_radius=0.087,
     platform_radius=0.087,
