@@ -98,7 +98,9 @@ def material(scene, names) -> dict:
 
 
 def apply(scene, params: dict):
-    """``scene`` with the physical entries of ``params`` written in (others ignored)."""
+    """``scene`` with the physical entries of ``params`` written in (others ignored), as float64
+    (a Python number would enter weakly typed: another compiled program)."""
+    params = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
     rod = scene.legs.rod
     if "tau" in params:
         tau = jnp.broadcast_to(params["tau"], jnp.shape(rod.damping.tau))
@@ -115,7 +117,7 @@ def apply(scene, params: dict):
         scene = eqx.tree_at(lambda s: (s.legs.rod.youngs_modulus, s.legs.rod.shear_modulus), scene, (E, G))
     if "platform_mass" in params:
         body = scene.end.body
-        m = jnp.asarray(params["platform_mass"], jnp.float64)
+        m = params["platform_mass"]
         scene = eqx.tree_at(lambda s: (s.end.body.mass, s.end.body.inertia), scene, (m, body.inertia * (m / body.mass)))
     if "push_force" in params:
         f = params["push_force"]

@@ -1,11 +1,16 @@
 """Scene builders for tests (independent of the shipped TOML files), and the recordings'
 generator script as a module."""
 
+import dataclasses
 import importlib.util
 from pathlib import Path
 
+import equinox as eqx
+import jax.numpy as jnp
+
 import pcrjax
 from pcrjax import scene_from_dict
+from pcrjax.io.scene_file import read_toml, scene_path
 
 
 def rod_scene(**kw):
@@ -98,6 +103,28 @@ def shared_rod(
         **kw,
     )
     return with_numbers(scene_from_dict(data, "<test>"), dt=dt, alpha=alpha, duration=duration)
+
+
+# The shared Triskele-bot: the shipped scene at N 10 on one structure for the dynamic tests that
+# vary numbers only: Kelvin-Voigt damping compiled (tau 0: the undamped equations), step actuators
+# (constant where the final values are the initial ones), the grid and segments of dt 0.1 ms.
+SHARED_TRISKELE_DT = 1e-4  # s: the finest step the shared Triskele serves
+
+
+def shared_triskele(*, dt=1e-3, alpha=-0.2, duration=0.1, tau=0.0, final=None):
+    """The shipped Triskele-bot (its push released at t = 0) on the shared structure with these
+    numbers; ``final``: actuator values stepped to just after t = 0 (None: held)."""
+    data = read_toml(scene_path("triskele"))
+    data["effects"] = {**data.get("effects", {}), "damping": True}
+    data["rod"] = {**data.get("rod", {}), "tau": 1e-3}
+    sc = pcrjax.with_solver(scene_from_dict(data), nodes=10, dt=SHARED_TRISKELE_DT, alpha=-0.5, duration=duration)
+    act = sc.actuation
+    act = dataclasses.replace(
+        act, kinds=("step",) * act.size, final=act.initial if final is None else jnp.asarray(final, jnp.float64)
+    )
+    sc = dataclasses.replace(sc, actuation=act)
+    sc = eqx.tree_at(lambda s: s.legs.rod.damping.tau, sc, jnp.full(sc.legs.count, tau, dtype=jnp.float64))
+    return with_numbers(sc, dt=dt, alpha=alpha, duration=duration)
 
 
 def with_numbers(scene, *, dt, alpha, duration):

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import shared_triskele
 
 import pcrjax
 from pcrjax import load_scene, with_solver
@@ -109,12 +110,12 @@ def test_triskele_settles_to_statics_after_actuator_step():
     # Kelvin-Voigt damping tau = 2 ms (modal damping ratio about 0.6 at the 90-160 Hz platform
     # modes) and BDF2: after 0.25 s the motion has died out and the dynamic rest state must be
     # the static equilibrium of the new actuator values.
+    # On the shared Triskele's structure (`helpers.shared_triskele`: N 10, the grid of dt 0.1 ms).
     final = jnp.array([2e-6, -1e-6, 0.5e-6])
-    sc = eqx.tree_at(lambda s: (s.load.force, s.load.moment), triskele(alpha=0.0, duration=0.25), NO_LOAD)
-    sc = with_damping(sc, [2e-3] * 3)
-    stepped = dataclasses.replace(sc.actuation, final=final, kinds=("step",) * 3)
-    tr = pcrjax.simulate(dataclasses.replace(sc, actuation=stepped))
-    st = pcrjax.solve_static(dataclasses.replace(sc, actuation=dataclasses.replace(stepped, initial=final)))
+    sc = shared_triskele(dt=1e-3, alpha=0.0, duration=0.25, tau=2e-3, final=final)
+    sc = eqx.tree_at(lambda s: (s.load.force, s.load.moment), sc, NO_LOAD)
+    tr = pcrjax.simulate(sc)
+    st = pcrjax.solve_static(eqx.tree_at(lambda s: s.actuation.initial, sc, final))
     moved = np.abs(np.asarray(tr.position)[-1] - np.asarray(tr.position)[0]).max()
     err = np.abs(np.asarray(tr.position)[-1] - np.asarray(st.position)).max()
     err_th = abs(float(tr.rotation_vector[-1, 2]) - float(st.rotation_vector[2]))
