@@ -3,9 +3,10 @@ import json
 import os
 import sys
 
-# The suite compiles far more than it runs: XLA:CPU's legacy emitters build its programs in about
-# two thirds of the time its newer fusion emitters take, and run them a little slower (BENCHMARKS.md).
-# Set before JAX starts its backend; subprocesses (command lines, notebook kernels) inherit it.
+# The suite compiles far more than it runs: XLA:CPU's legacy emitters build its programs faster than
+# the newer fusion emitters, and run them a little slower (figures in BENCHMARKS.md). XLA reads the
+# flag when jaxlib is first imported, so it is set before any import of jax; subprocesses (command
+# lines, notebook kernels) inherit it.
 os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_cpu_use_fusion_emitters=false"]).strip()
 
 sys.path.insert(0, os.path.dirname(__file__))

@@ -142,6 +142,7 @@ def _write(p, text):
     return str(p)
 
 
+@pytest.mark.xdist_group("triskele_inverse")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_cli_inverse_writes_outputs_and_replay(tmp_path, capsys):
     out = tmp_path / "out"
     rc = cli.main(
@@ -175,10 +176,12 @@ def test_cli_inverse_rejects_bad_paths(tmp_path, capsys, text, needle):
     assert rc == 2 and needle in err and err.count("\n") == 1, err
 
 
+@pytest.mark.xdist_group("triskele_inverse")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_cli_inverse_reports_a_path_outside_the_workspace(tmp_path, capsys):
     """A 20 mm jump in 10 ms asks the 40 g platform for newtons: no equilibrium; the error names
-    the time and the partial solution is kept."""
-    t = np.arange(0.0, 0.0305, 1e-3)
+    the time and the partial solution is kept. The path has as many samples as `triskele_move`
+    (the test above): the same compiled inverse-dynamics programs."""
+    t = np.arange(0.0, 0.4005, 1e-3)
     x = 20e-3 * np.clip((t - 0.01) / 0.01, 0.0, 1.0)
     rows = "\n".join(f"{a},{b},0,0.17453943165976671" for a, b in zip(t, x))
     p = _write(tmp_path / "far.csv", "t_s,x_m,y_m,theta_rad\n" + rows + "\n")
