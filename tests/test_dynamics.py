@@ -14,9 +14,6 @@ from pcrjax.numerics.bdf_alpha import amplification
 F1 = first_frequency_hz(0.4, 207e9, 1e-3, 8000.0)  # 8.895 Hz
 W1 = 2 * math.pi * F1
 
-# One process runs them all: they share the shared cantilever's compiled programs (`--dist loadgroup`).
-pytestmark = pytest.mark.xdist_group("shared_rod")
-
 
 def _tip_z(scene):
     tr = pcrjax.simulate(scene)

@@ -102,7 +102,6 @@ def _rollout_gradient(checkpoint, forward_columns, batched=False):
 # Three scalars: by default `rollout` takes their derivatives in forward mode whatever the AD mode
 # (`numerics.few_inputs`); ``forward_columns=0`` asks for JAX's reverse mode, here through
 # checkpointed chunks of 7 steps (the last one partial). Plain reverse mode is slow to save a compile.
-@pytest.mark.xdist_group("rollout_gradients")  # one process: the tests share compiled programs (`--dist loadgroup`)
 @pytest.mark.parametrize(
     "checkpoint, forward_columns",
     [(None, None), (7, 0), pytest.param(None, 0, marks=pytest.mark.slow)],
@@ -130,7 +129,6 @@ def test_rollout_jacfwd_after_50_steps_bbt():
     assert float(J["bbt"][0]) == 0.0 and float(J["bbt"][2]) == 0.0
 
 
-@pytest.mark.xdist_group("rollout_gradients")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_batched_rollout_gradients_are_each_members_reverse_mode_gradient():
     """`jax.vmap(jax.grad(...))` over three rods (lengths, E and tau apart; forward columns,
     batched Newton) equals each member's gradient by JAX's reverse mode (``forward_columns=0``,

@@ -87,7 +87,6 @@ def _damped_triskele():
     return shared_triskele(tau=2e-4, dt=1e-4, alpha=-0.45, duration=0.15)
 
 
-@pytest.mark.xdist_group("shared_triskele")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_lumped_platform_modes_are_the_simulated_ones():
     """The Triskele's rods weigh 1e-5 of its platform, so its free motion's modes are those of
     the platform on the rods' static stiffness (`platform_screen.platform_modes`, statics and an
@@ -107,7 +106,6 @@ def test_lumped_platform_modes_are_the_simulated_ones():
     assert sh[0] == pytest.approx(shape[k], rel=2e-2)
 
 
-@pytest.mark.xdist_group("shared_triskele")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_lumped_damping_is_tau_times_the_stiffness():
     """The screen's damping (`platform_screen`): Kelvin-Voigt rods on a platform they barely
     weigh damp it by tau K, so each mode decays at tau w^2 / 2 and rings at w sqrt(1 - zeta^2).
@@ -1053,7 +1051,6 @@ def test_youngs_modulus_scales_the_small_deflection_inversely():
     assert np.allclose(np.asarray(G), 1.25 * np.asarray(sc.legs.rod.shear_modulus), rtol=1e-14)
 
 
-@pytest.mark.xdist_group("shared_triskele")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_platform_mass_scales_the_platform_modes_by_its_square_root():
     """``--fit platform_mass``: the platform's mass, its inertia with it. Oracle: a mass on
     springs: the Triskele's rods weigh 1e-5 of the platform, so doubling the platform's mass

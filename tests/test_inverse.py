@@ -142,7 +142,6 @@ def _write(p, text):
     return str(p)
 
 
-@pytest.mark.xdist_group("triskele_inverse")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_cli_inverse_writes_outputs_and_replay(tmp_path, capsys):
     out = tmp_path / "out"
     rc = cli.main(
@@ -176,7 +175,6 @@ def test_cli_inverse_rejects_bad_paths(tmp_path, capsys, text, needle):
     assert rc == 2 and needle in err and err.count("\n") == 1, err
 
 
-@pytest.mark.xdist_group("triskele_inverse")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_cli_inverse_reports_a_path_outside_the_workspace(tmp_path, capsys):
     """A 20 mm jump in 10 ms asks the 40 g platform for newtons: no equilibrium; the error names
     the time and the partial solution is kept. The path has as many samples as `triskele_move`

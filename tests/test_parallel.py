@@ -106,7 +106,6 @@ def with_damping(sc, taus):
     )
 
 
-@pytest.mark.xdist_group("shared_triskele")  # one process: the tests share compiled programs (`--dist loadgroup`)
 def test_triskele_settles_to_statics_after_actuator_step():
     # Kelvin-Voigt damping tau = 2 ms (modal damping ratio about 0.6 at the 90-160 Hz platform
     # modes) and BDF2: after 0.25 s the motion has died out and the dynamic rest state must be
