@@ -2,9 +2,10 @@
 
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import shared_rod
+from helpers import SHARED_DT, shared_rod
 from oracles import first_frequency_hz, fit_sinusoids, window_amplitudes
 
 import pcrjax
@@ -128,3 +129,20 @@ def test_runs_of_any_length_share_one_compiled_chunk_and_agree_step_by_step():
         np.testing.assert_array_equal(
             np.asarray(getattr(short, name)), np.asarray(getattr(long, name))[: len(getattr(short, name))]
         )
+
+
+def test_with_step_keeps_the_compiled_structure_and_checks_its_numbers():
+    """`pcrjax.with_step`: another step, alpha and duration on the grid and segments the scene was
+    built for (which `with_solver` would choose again), as float64 leaves; bad numbers refused."""
+    fine = shared_rod(dt=SHARED_DT, duration=0.1)
+    coarse = pcrjax.with_step(fine, 4e-3, alpha=-0.3, duration=0.2)
+    kept = lambda s: (s.solver.nodes, s.solver.segments, s.solver.refine, s.solver.integrator)  # noqa: E731
+    assert kept(coarse) == kept(fine) != kept(pcrjax.with_solver(coarse))
+    assert coarse.solver.steps == 50 and float(coarse.solver.dt) == 4e-3 and float(coarse.solver.alpha) == -0.3
+    assert coarse.solver.dt.dtype == jnp.float64 and not coarse.solver.dt.weak_type
+    assert pcrjax.with_step(fine, 1e-3).solver.steps == 100  # the duration kept
+    for dt in (0.0, -1e-3, float("nan")):
+        with pytest.raises(pcrjax.SceneError, match="dt must be > 0"):
+            pcrjax.with_step(fine, dt)
+    with pytest.raises(pcrjax.SceneError, match="alpha must lie"):
+        pcrjax.with_step(fine, 1e-3, alpha=0.1)
