@@ -102,7 +102,7 @@ def shared_rod(
         gravity=gravity,
         **kw,
     )
-    return with_numbers(scene_from_dict(data, "<test>"), dt=dt, alpha=alpha, duration=duration)
+    return pcrjax.with_step(scene_from_dict(data, "<test>"), dt, alpha=alpha, duration=duration)
 
 
 # The shared Triskele-bot: the shipped scene at N 10 on one structure for the dynamic tests that
@@ -124,12 +124,7 @@ def shared_triskele(*, dt=1e-3, alpha=-0.2, duration=0.1, tau=0.0, final=None):
     )
     sc = dataclasses.replace(sc, actuation=act)
     sc = eqx.tree_at(lambda s: s.legs.rod.damping.tau, sc, jnp.full(sc.legs.count, tau, dtype=jnp.float64))
-    return with_numbers(sc, dt=dt, alpha=alpha, duration=duration)
-
-
-def with_numbers(scene, *, dt, alpha, duration):
-    """``scene`` with another step, alpha and duration, its compiled structure kept (`pcrjax.with_step`)."""
-    return pcrjax.with_step(scene, dt, alpha=alpha, duration=duration)
+    return pcrjax.with_step(sc, dt, alpha=alpha, duration=duration)
 
 
 def committed_recording(name: str, folder) -> tuple[Path, dict]:

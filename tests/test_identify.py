@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import committed_recording, recording_generator, shared_triskele, with_numbers
+from helpers import committed_recording, recording_generator, shared_triskele
 
 import pcrjax
 from identify import experiment, modes, platform_screen, start
@@ -95,7 +95,7 @@ def test_lumped_platform_modes_are_the_simulated_ones():
     higher on both modes it shows, the same at a tenth of the push and at half the dt (neither
     nonlinearity nor time discretisation); the start needs 1 %, which the time-domain fit closes.
     Run on the damped test's structure below, its tau set to zero."""
-    sc = with_numbers(_damped_triskele(), dt=2.5e-4, alpha=-0.45, duration=0.3)
+    sc = pcrjax.with_step(_damped_triskele(), 2.5e-4, alpha=-0.45, duration=0.3)
     lengths = jnp.array([0.0315, 0.0327, 0.0309])
     f_lumped, shape = (np.asarray(a) for a in platform_screen.platform_modes(sc)(jnp.log(lengths)))
     traj = pcrjax.simulate(experiment.apply(sc, {"lengths": lengths, "tau": 0.0}))

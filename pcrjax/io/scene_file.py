@@ -325,6 +325,14 @@ def read_solver(r: _Reader) -> dict:
     return out
 
 
+def _check_step(dt, alpha):
+    """BDF-alpha's step and alpha as `with_solver` and `with_step` accept them (NaN refused)."""
+    if not -0.5 <= float(alpha) <= 0.0:
+        raise SceneError(f"alpha must lie in [-0.5, 0], got {float(alpha)}")
+    if not float(dt) > 0:
+        raise SceneError(f"dt must be > 0, got {float(dt)}")
+
+
 def with_solver(scene: Scene, **changes) -> Scene:
     """A copy of ``scene`` with solver settings changed (nodes, integrator, dt, alpha, duration,
     tol, max_iter, segments, unroll, continuation); the shooting segments and the internal grid are
@@ -347,10 +355,7 @@ def with_solver(scene: Scene, **changes) -> Scene:
     if unknown:
         raise SceneError(f"with_solver: unknown setting(s) {', '.join(sorted(unknown))}")
     cur.update(changes)
-    if not -0.5 <= cur["alpha"] <= 0.0:
-        raise SceneError(f"alpha must lie in [-0.5, 0], got {cur['alpha']}")
-    if cur["dt"] <= 0:
-        raise SceneError(f"dt must be > 0, got {cur['dt']}")
+    _check_step(cur["dt"], cur["alpha"])
     lengths = scene.legs.lengths(scene.actuator_values(jnp.zeros(())))
     return dataclasses.replace(scene, solver=make_solver(scene.legs.rod, lengths, **cur))
 
@@ -363,10 +368,7 @@ def with_step(scene: Scene, dt, *, alpha=None, duration=None) -> Scene:
     s = scene.solver
     duration = float(s.steps * s.dt) if duration is None else float(duration)
     alpha = s.alpha if alpha is None else alpha
-    if not float(dt) > 0:
-        raise SceneError(f"dt must be > 0, got {dt}")
-    if not -0.5 <= float(alpha) <= 0.0:
-        raise SceneError(f"alpha must lie in [-0.5, 0], got {float(alpha)}")
+    _check_step(dt, alpha)
     solver = dataclasses.replace(
         s, dt=jnp.asarray(dt, jnp.float64), alpha=jnp.asarray(alpha, jnp.float64), steps=int(round(duration / float(dt)))
     )
