@@ -141,6 +141,46 @@ def test_cli_design_refuses_a_move_no_trajectory_can_make(tmp_path, capsys):
     assert rc == 2 and "no trajectory makes the move in 0.01 s" in err and err.count("\n") == 1, err
 
 
+def test_a_plain_move_that_fails_is_reported_and_the_design_kept(tmp_path, monkeypatch):
+    """The plain move is only the comparison: where its run does not converge (a fast one can load
+    the legs past what Newton follows), the design's outputs are still written and the plain
+    run's failure is reported in summary.json, its steps up to the failure plotted. The runs are
+    stand-ins (no rollout compiled): this checks the writing, not the dynamics."""
+    from types import SimpleNamespace
+
+    scene = with_solver(load_scene("triskele"), nodes=5, dt=1e-3, duration=0.004)
+    a0 = scene.actuator_values(jnp.zeros(()))
+    move = design.Move(a0=a0, a1=a0 + 1e-6, p1=jnp.zeros(3), R1=jnp.eye(3), duration=0.002, settle=0.002, count=2)
+    coeffs = jnp.full((2, 3), 1e-7)
+
+    def run(t, c):
+        off = np.tile([1e-7, 0.0, 0.0], (t.size, 1))  # 0.1 um from the target throughout
+        return SimpleNamespace(
+            t=t, position=off, actuators=np.asarray(move.actuators(t, c)), base_wrenches=np.zeros((t.size, 3, 2, 3))
+        )
+
+    def verify(scene_, move_, c, finer=True):
+        t = np.linspace(0.0, 0.004, 9 if finer else 5)
+        if np.any(np.asarray(c)):
+            return run(t, c)
+        e = pcrjax.ConvergenceError("Newton did not converge at t = 0.002 s (step 2)", 0.002)
+        e.partial = None if finer else run(t[:2], c)
+        raise e
+
+    monkeypatch.setattr(design, "verify", verify)
+    out = tmp_path / "m"
+    out.mkdir()
+    s = cli._write_move(out, scene, move, coeffs, {}, 1e-6, "stand-in")
+    on_disk = json.loads((out / "summary.json").read_text())
+    for grid in ("same_grid", "finer_grid"):
+        assert on_disk["plain"][grid] == {"converged": False, "failure": "Newton did not converge at t = 0.002 s (step 2)"}
+        assert on_disk["designed"][grid] == {"converged": True, "residual_vibration_m": 1e-7, "settling_time_s": 0.0}
+    assert on_disk["vibration_reduction_finer_grid"] is None and "did not converge" in cli._plain_vibration(s)
+    plain = np.loadtxt(out / "plain_actuators.csv", delimiter=",", skiprows=1)
+    assert plain.shape == (5, 4) and np.allclose(plain[-1, 1:], np.asarray(move.a1), rtol=0, atol=1e-15)
+    assert (out / "actuators.csv").exists() and (out / "design.png").stat().st_size > 0
+
+
 @pytest.mark.integration  # the whole command: a design per trial duration, minutes cold
 def test_cli_design_fastest_move(tmp_path):
     """The fastest 5 um move that stays within the SLC-1730's 2 mm/s and settles into +-1 um

@@ -255,7 +255,9 @@ def plot_design(path: Path, runs: dict, move, title: str):
     ax[0].grid(alpha=0.3)
     ax[0].set_title("platform: residual vibration after the move (dotted: 1 µm)")
     for label in ("plain", "designed"):
-        traj = runs[(label, "same_grid")]
+        traj = runs.get((label, "same_grid"))
+        if traj is None:
+            continue
         a = np.asarray(traj.actuators) - np.asarray(traj.actuators)[0]
         f, unit = _scale(a)
         for i in range(a.shape[1]):
