@@ -79,7 +79,7 @@ def settings(scene, quick: bool = False) -> list[Setting]:
     """The settings compared for ``scene``: one family per knob, each around the scene's own
     (thesis) setting, plus that setting itself."""
     s = scene.solver
-    n0, dt0, a0, tol0 = s.nodes, float(s.dt), float(s.alpha), s.newton.tol
+    n0, dt0, a0, tol0 = s.nodes, float(s.dt), float(s.alpha), float(s.newton.tol)
     nm = min(n0, 20)  # the families other than N run at a moderate N
     F = FAMILIES
     out = [Setting(THESIS, f"scene's own: N {n0}, dt {dt0:g}, alpha {a0:g}", {})]

@@ -42,7 +42,7 @@ class StaticResult(eqx.Module):
     residual_norm: jnp.ndarray
     newton_iterations: jnp.ndarray
     result: jnp.ndarray
-    tol: float = eqx.field(static=True)
+    tol: jnp.ndarray
 
     @property
     def converged(self):
@@ -68,7 +68,7 @@ class Trajectory(eqx.Module):
     residual: jnp.ndarray
     jacobians: jnp.ndarray
     result: jnp.ndarray
-    tol: float = eqx.field(static=True)
+    tol: jnp.ndarray
 
     @property
     def converged(self):
@@ -135,7 +135,7 @@ def _before_new_static(scene):
 def static_failure(scene, res) -> ConvergenceError:
     code = int(res.result)
     return ConvergenceError(
-        f"static solve did not converge: {results.message(code)} (scaled residual {float(res.residual_norm):.3e}, tol {scene.solver.newton.tol:.1e})",
+        f"static solve did not converge: {results.message(code)} (scaled residual {float(res.residual_norm):.3e}, tol {float(scene.solver.newton.tol):.1e})",
         0.0,
         float(res.residual_norm),
         code,
@@ -391,7 +391,7 @@ def _raise_first_failure(scene, traj):
         code = int(traj.result[i])
         res = float(traj.residual[i])
         raise ConvergenceError(
-            f"Newton did not converge at t = {t:.6g} s (step {i + 1}): {results.message(code)} (scaled residual {res:.3e}, tol {scene.solver.newton.tol:.1e})",
+            f"Newton did not converge at t = {t:.6g} s (step {i + 1}): {results.message(code)} (scaled residual {res:.3e}, tol {float(scene.solver.newton.tol):.1e})",
             t,
             res,
             code,

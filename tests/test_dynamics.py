@@ -2,6 +2,7 @@
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -146,3 +147,6 @@ def test_with_step_keeps_the_compiled_structure_and_checks_its_numbers():
             pcrjax.with_step(fine, dt)
     with pytest.raises(pcrjax.SceneError, match="alpha must lie"):
         pcrjax.with_step(fine, 1e-3, alpha=0.1)
+    # Newton's tolerance and cap are numbers too: scenes that differ there share their programs.
+    tight = pcrjax.with_solver(fine, tol=1e-13, max_iter=8)
+    assert jax.tree.structure(tight) == jax.tree.structure(fine) and float(tight.solver.newton.tol) == 1e-13

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pcrjax.numerics import newton
+from pcrjax.numerics import newton, results
 
 SETTINGS = newton.NewtonSettings(tol=1e-13, max_iter=40)
 
@@ -178,3 +178,27 @@ def test_solve_once_solves_a_badly_scaled_system_like_numpy():
     np.testing.assert_allclose(one, want[:, 0], rtol=1e-9, atol=1e-12 * np.max(np.abs(want)))
     mapped = np.asarray(jax.vmap(lambda b: newton.solve_once(jnp.asarray(J), b), in_axes=1, out_axes=1)(jnp.asarray(B)))
     np.testing.assert_allclose(mapped, want, rtol=1e-9, atol=1e-12 * np.max(np.abs(want)))
+
+
+def test_tolerance_and_cap_are_numbers_and_each_member_keeps_its_own():
+    """Newton's ``tol`` and ``max_iter`` are arrays, not compiled structure: one trace serves every
+    tolerance and cap, each solve stops at its own, and so does each member under vmap (the
+    batched rule's members carry their own settings)."""
+    traces = []
+
+    def solve(settings, q):
+        traces.append(None)
+        fn = lambda x: x**3 + 2.0 * x - q  # noqa: E731
+        _, _, stats = newton.solve(fn, jax.jacfwd(fn), newton.Jacobian.empty(1), settings, newton.plain(jnp.full(1, 4.0)))
+        return stats.residual, stats.iterations, stats.result
+
+    loose, tight, capped = (newton.NewtonSettings(tol=t, max_iter=m) for t, m in ((1e-3, 40), (1e-13, 40), (1e-13, 2)))
+    f = jax.jit(solve)
+    (rl, il, cl), (rt, it, ct), (rc, ic, cc) = (f(s, jnp.asarray(3.0)) for s in (loose, tight, capped))
+    assert len(traces) == 1
+    assert cl == ct == results.SUCCESSFUL and 1e-13 < rl <= 1e-3 and rt <= 1e-13 and il < it
+    assert ic == 2 and cc == results.MAX_ITERATIONS and rc > 1e-13
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), loose, tight, capped)
+    rb, ib, cb = jax.jit(jax.vmap(solve))(stacked, jnp.full(3, 3.0))
+    assert np.array_equal(ib, [il, it, ic]) and np.array_equal(cb, [cl, ct, cc])
+    assert np.allclose(rb, [rl, rt, rc], rtol=1e-12, atol=0)

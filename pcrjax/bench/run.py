@@ -72,7 +72,7 @@ def _row(label, scene, tr, tm, compile_s, ref, kernels):
         segments=s.segments,
         kernels_per_node_step=kernels,
         kernels_per_residual=kernels * scan_steps(s),
-        tol=s.newton.tol,
+        tol=float(s.newton.tol),
     )
 
 

@@ -74,7 +74,7 @@ def scene_settings(scene) -> dict:
         "alpha": float(s.alpha),
         "steps": s.steps,
         "duration_s": float(s.steps * s.dt),
-        "tol": s.newton.tol,
+        "tol": float(s.newton.tol),
         "shooting_segments": s.segments,
         "internal_nodes": s.grid_nodes,
         "effects": {k: getattr(e, k) for k in ("inertia", "gravity", "damping", "drag", "shear_extension", "planar")},

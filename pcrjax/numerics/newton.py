@@ -15,19 +15,29 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import numpy as np
 
 from . import results
 from .few_inputs import linearizing
 
 
+def _number(dtype):
+    """A field converter: a number as a 0-d array (numpy, so that no JAX array exists before x64
+    is enabled); arrays, traced ones included, pass as they are."""
+    return lambda x: x if isinstance(x, jax.Array | np.ndarray) else np.asarray(x, dtype)
+
+
 class NewtonSettings(eqx.Module):
-    """``stop_when_lost``: a stage that ends unconverged ends the solve where the next stage would
+    """``tol`` (scaled max-norm residual) and ``max_iter`` (directions per stage) are arrays, not
+    compiled structure: scenes that differ only there share their programs.
+
+    ``stop_when_lost``: a stage that ends unconverged ends the solve where the next stage would
     start from its result (a continuation that lost its path). Off by default: a platform's static
     continuation can fail a middle stage and still converge at the last. A screen of many
     candidates that only asks which converge turns it on (failures then cost 2-4x less)."""
 
-    tol: float = eqx.field(static=True, default=1e-10)
-    max_iter: int = eqx.field(static=True, default=50)
+    tol: jnp.ndarray = eqx.field(default=1e-10, converter=_number(np.float64))
+    max_iter: jnp.ndarray = eqx.field(default=50, converter=_number(np.int64))
     max_backtracks: int = eqx.field(static=True, default=12)
     refresh_ratio: float = eqx.field(static=True, default=0.5)
     broyden: bool = eqx.field(static=True, default=True)
@@ -349,7 +359,7 @@ def _staged_newton(fn, jac_fn, jac0: Jacobian, settings: NewtonSettings, stages:
         st = eqx.tree_at(lambda t: (t.jac, t.fresh, t.nj), st, (jac, st.fresh | refresh, st.nj + jnp.where(refresh, 1, 0)))
         dx, x_t = per(_trial)(st)
         r_t, aux_t = evaluate(x_t, s)
-        nxt, (step_x, change), upd = per(lambda *a: _accept(a[0], a[1], settings, *a[2:]))(st, stages, dx, r_t, aux_t)
+        nxt, (step_x, change), upd = per(_accept)(st, stages, settings, dx, r_t, aux_t)
         if batched:
             upd = upd & ~st.finished
         updated = lambda: per(lambda j, a, b: j.broyden(a, b))(st.jac, step_x, change)  # noqa: E731
@@ -494,14 +504,21 @@ def _batched(g, g_jac, settings: NewtonSettings, has_aux=False):
     refactor at every pass. The rule runs `_staged_newton` on the batch instead.
     """
 
+    numbers, fixed = eqx.partition(settings, eqx.is_array)
+
     @jax.custom_batching.custom_vmap
-    def run(consts, jac_consts, jac0, stages):
+    def run(consts, jac_consts, jac0, stages, numbers):
         return _staged_newton(
-            lambda x, s: g(x, s, consts), lambda x, s: g_jac(x, s, jac_consts), jac0, settings, stages, has_aux=has_aux
+            lambda x, s: g(x, s, consts),
+            lambda x, s: g_jac(x, s, jac_consts),
+            jac0,
+            eqx.combine(numbers, fixed),
+            stages,
+            has_aux=has_aux,
         )
 
     @run.def_vmap
-    def rule(size, in_batched, consts, jac_consts, jac0, stages):
+    def rule(size, in_batched, consts, jac_consts, jac0, stages, numbers):
         axes = lambda flags: [0 if b else None for b in flags]  # noqa: E731
         spread = lambda tree, flags: jax.tree.map(  # noqa: E731
             lambda a, b: a if b else jnp.broadcast_to(a, (size,) + jnp.shape(a)), tree, flags
@@ -513,14 +530,14 @@ def _batched(g, g_jac, settings: NewtonSettings, has_aux=False):
             lambda x, s: fn(x, s, consts),
             lambda x, s, members: jac_fn(x, s, pick(members)),
             spread(jac0, in_batched[2]),
-            settings,
+            eqx.combine(spread(numbers, in_batched[4]), fixed),  # each member's tolerance and cap
             spread(stages, in_batched[3]),
             batched=True,
             has_aux=has_aux,
         )
         return out, jax.tree.map(lambda _: True, out)
 
-    return run
+    return lambda consts, jac_consts, jac0, stages: run(consts, jac_consts, jac0, stages, numbers)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1))
