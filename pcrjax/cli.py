@@ -388,8 +388,9 @@ def _design_move(args, scene, log) -> int:
     if not args.quiet:
         print(
             f"{scene.name}: residual vibration {_plain_vibration(s)} -> "
-            f"{s['designed']['finer_grid']['residual_vibration_m']:.3g} m (designed) on the finer grid; {len(res['objective']) - 1} {res['method']} iterations in {res['optimise_s']:.1f} s after "
-            f"{res['compile_s']:.1f} s compile; {'within limits' if s['feasibility']['feasible'] else 'LIMITS EXCEEDED'}; wrote {out}/"
+            f"{s['designed']['finer_grid']['residual_vibration_m']:.3g} m (designed) on the finer grid; "
+            f"{len(res['objective']) - 1} {res['method']} iterations in {res['optimise_s']:.1f} s after {res['compile_s']:.1f} s compile; "
+            f"{'within limits' if s['feasibility']['feasible'] else 'LIMITS EXCEEDED'}; wrote {out}/"
         )
     return 0
 

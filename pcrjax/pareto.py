@@ -12,9 +12,9 @@ reported apart).
 report gives the change from N/2 to N as a bound), the scene's alpha, Newton tolerance 1e-12, at
 h, h/2, h/4 and h/8 with h the smallest dt of the grid, sampled at h, all four on the grid and
 shooting segments of h/8 (`with_step`: the runs differ in time only, and share one program).
-BDF-alpha is second-order for every alpha, but its first step is backward Euler (it starts the rates from rest,
-DESIGN/README), whose O(h) error in the rates stays in the motion after a release; the runs then
-carry both an O(h) and an O(h^2) term (observed orders 0.4-1.3 on the released cantilever at h =
+BDF-alpha is second-order for every alpha, but its first step is backward Euler (it starts the
+rates from rest, DESIGN/README), whose O(h) error in the rates stays in the motion after a
+release; the runs then carry both an O(h) and an O(h^2) term (observed orders 0.4-1.3 on the released cantilever at h =
 2.5 ms), and the extrapolation (8 x(k/4) - 6 x(k/2) + x(k))/3 of three runs removes both (error
 O(k^3)). That of h/2, h/4 and h/8 is the reference where its remainder, its difference from that
 of h, h/2 and h/4 (the O(k^3) terms left, or more where the chain is not yet asymptotic), is
